@@ -1,0 +1,512 @@
+"""Tests of torchheat.mesh: loading, validation errors, topology helpers."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+import trimesh
+
+from torchheat.mesh import Mesh, MeshError, MeshWarning, load_mesh
+
+DATA = Path(__file__).resolve().parents[1] / "torchheat" / "data"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+TRI_V = "0 0 0\n1 0 0\n0 1 0\n"
+TETRA_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+TETRA_F = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+
+
+def write(tmp_path: Path, name: str, text: str | bytes) -> Path:
+    path = tmp_path / name
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text)
+    return path
+
+
+def off_text(V, F, header_same_line: bool = False) -> str:
+    V, F = np.asarray(V), np.asarray(F)
+    head = f"OFF {len(V)} {len(F)} 0\n" if header_same_line else f"OFF\n{len(V)} {len(F)} 0\n"
+    rows = [" ".join(repr(float(x)) for x in v) for v in V]
+    rows += [f"{len(f)} " + " ".join(str(int(i)) for i in f) for f in F]
+    return head + "\n".join(rows) + "\n"
+
+
+def obj_text(V, F) -> str:
+    rows = ["v " + " ".join(repr(float(x)) for x in v) for v in np.asarray(V)]
+    rows += ["f " + " ".join(str(int(i) + 1) for i in f) for f in np.asarray(F)]
+    return "\n".join(rows) + "\n"
+
+
+def ply_text(V, F) -> str:
+    V, F = np.asarray(V), np.asarray(F)
+    head = (
+        "ply\nformat ascii 1.0\n"
+        f"element vertex {len(V)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    rows = [" ".join(repr(float(x)) for x in v) for v in V]
+    rows += [f"{len(f)} " + " ".join(str(int(i)) for i in f) for f in F]
+    return head + "\n".join(rows) + "\n"
+
+
+def write_mesh(tmp_path: Path, name: str, V, F) -> Path:
+    fmt = Path(name).suffix.lower()
+    text = {".off": off_text, ".obj": obj_text, ".ply": ply_text}[fmt](V, F)
+    return write(tmp_path, name, text)
+
+
+def assert_mesh_error(path: Path, *phrases: str, **kwargs) -> str:
+    with pytest.raises(MeshError) as info:
+        load_mesh(path, **kwargs)
+    msg = str(info.value)
+    assert isinstance(info.value, ValueError)
+    assert msg.startswith(str(path)), msg
+    for phrase in phrases:
+        assert phrase in msg, msg
+    return msg
+
+
+def two_triangles_apart():
+    V = np.array(
+        [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [5, 5, 5], [6, 5, 5], [5, 6, 5]],
+    )
+    F = np.array([[0, 1, 2], [1, 3, 2], [4, 5, 6]])
+    return V, F
+
+
+# ------------------------------------------------------------------ file errors
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.off"
+    assert_mesh_error(path, "no such file")
+
+
+def test_directory(tmp_path):
+    path = tmp_path / "dir.obj"
+    path.mkdir()
+    assert_mesh_error(path, "directory")
+
+
+def test_unknown_extension(tmp_path):
+    path = write(tmp_path, "tri.stl", "solid x\nendsolid x\n")
+    msg = assert_mesh_error(path, "unsupported mesh format", ".obj", ".off", ".ply")
+    assert "'.stl'" in msg
+
+
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("garbled.off", "OFF\n3 1 0\n0 0 zz\n1 0\n"),
+        ("truncated.off", "OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n"),
+        ("binary.off", b"\x00\x01\x02garbage\xff\xfe\n"),
+        ("empty.off", ""),
+        (
+            "garbled.ply",
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\nfoo\n",
+        ),
+    ],
+)
+def test_unreadable_off_ply(tmp_path, name, text):
+    path = write(tmp_path, name, text)
+    assert_mesh_error(path, "could not read the file")
+
+
+def test_unreadable_obj(tmp_path):
+    path = write(tmp_path, "binary.obj", b"\x00\x01\x02garbage\xff\xfe\n")
+    assert_mesh_error(path, "no vertex ('v') or face ('f') lines")
+    path = write(tmp_path, "badvertex.obj", "v 0 0 0\nv 1 zz 0\nv 0 1 0\nf 1 2 3\n")
+    assert_mesh_error(path, "cannot parse vertex 1 on line 2")
+    path = write(tmp_path, "shortvertex.obj", "v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n")
+    assert_mesh_error(path, "cannot parse vertex 1")
+    path = write(tmp_path, "badface.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 x 3\n")
+    assert_mesh_error(path, "cannot parse the face indices")
+
+
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("points.off", "OFF\n3 0 0\n" + TRI_V),
+        ("points.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n"),
+        (
+            "points.ply",
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n" + TRI_V,
+        ),
+    ],
+)
+def test_no_faces(tmp_path, name, text):
+    path = write(tmp_path, name, text)
+    assert_mesh_error(path, "no faces", "point cloud")
+
+
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n"),
+        (
+            "mixed.off",
+            "OFF\n5 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 2 0\n3 1 4 2\n4 0 1 2 3\n",
+        ),
+        ("quad.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n"),
+        (
+            "quad.ply",
+            "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            "end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n",
+        ),
+    ],
+)
+def test_non_triangle_faces(tmp_path, name, text):
+    path = write(tmp_path, name, text)
+    assert_mesh_error(path, "non-triangle faces", "triangulate it first")
+
+
+def test_non_triangle_obj_reports_line(tmp_path):
+    text = "# quad\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4 2\n"
+    path = write(tmp_path, "quad2.obj", text)
+    assert_mesh_error(path, "1 face not triangles", "line 7", "4 corners")
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])
+def test_nan_coordinates(tmp_path, ext):
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    V[2, 1] = np.nan
+    V[3, 0] = np.inf
+    path = write_mesh(tmp_path, "nan" + ext, V, [[0, 1, 2], [1, 3, 2]])
+    assert_mesh_error(path, "2 vertices with NaN/inf", "first: vertex 2")
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "phrase"),
+    [
+        ("oob.off", "OFF\n3 1 0\n" + TRI_V + "3 0 1 5\n", "out of range"),
+        ("neg.off", "OFF\n3 1 0\n" + TRI_V + "3 0 1 -1\n", "out of range"),
+        ("oob.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", "out of range"),
+        ("zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "out of range"),
+        ("negobj.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -4\n", "out of range"),
+        (
+            "oob.ply",
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            "end_header\n" + TRI_V + "3 0 1 7\n",
+            "out of range",
+        ),
+    ],
+)
+def test_face_index_out_of_range(tmp_path, name, text, phrase):
+    path = write(tmp_path, name, text)
+    assert_mesh_error(path, phrase)
+
+
+def test_out_of_range_in_memory():
+    with pytest.raises(MeshError, match=r"^tri: 1 face with vertex indices out of range"):
+        Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 3]], name="tri")
+    with pytest.raises(MeshError, match="out of range"):
+        Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, -1, 2]], name="tri")
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])
+def test_degenerate_faces(tmp_path, ext):
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]])
+    # face 1 is collinear (zero area), face 2 repeats a vertex
+    F = np.array([[0, 1, 2], [0, 1, 3], [1, 1, 2]])
+    path = write_mesh(tmp_path, "degenerate" + ext, V, F)
+    assert_mesh_error(path, "2 degenerate faces", "1 with a repeated vertex", "first faces 1, 2")
+
+
+def test_degenerate_threshold_is_relative():
+    # a tiny but valid triangle on a mesh of any scale is accepted ...
+    scale = 1e-4
+    V = scale * np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    assert Mesh(V, [[0, 1, 2]]).area() == pytest.approx(0.5 * scale**2)
+    # ... a sliver with area 1e-14 on a unit-size mesh is not
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 1e-14, 0]])
+    F = [[0, 1, 2], [0, 3, 1]]
+    with pytest.raises(MeshError, match="1 degenerate face"):
+        Mesh(V, F, name="sliver")
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])
+def test_unreferenced_vertices(tmp_path, ext):
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 9, 9], [1, 1, 0], [8, 8, 8]])
+    F = np.array([[0, 1, 2], [1, 4, 2]])
+    path = write_mesh(tmp_path, "unref" + ext, V, F)
+    assert_mesh_error(path, "2 unreferenced vertices", "vertices 3, 5", "ground-truth", "clean")
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])
+def test_several_components(tmp_path, ext):
+    V, F = two_triangles_apart()
+    path = write_mesh(tmp_path, "parts" + ext, V, F)
+    assert_mesh_error(
+        path, "2 connected components", "vertex counts 4, 3", "largest_component=True"
+    )
+
+
+def test_largest_component(tmp_path):
+    V, F = two_triangles_apart()
+    # put the small component first so that reindexing is visible
+    perm = np.array([4, 5, 6, 0, 1, 2, 3])
+    inv = np.argsort(perm)
+    V2, F2 = V[perm], inv[F][[2, 0, 1]]
+    path = write_mesh(tmp_path, "parts.off", V2, F2)
+    mesh = load_mesh(path, largest_component=True)
+    assert (mesh.n_vertices, mesh.n_faces) == (4, 2)
+    assert mesh.vertex_map.dtype == torch.int64
+    assert mesh.vertex_map.tolist() == [3, 4, 5, 6]
+    np.testing.assert_array_equal(mesh.vertices.numpy(), V2[mesh.vertex_map.numpy()])
+    # faces refer to the same points as before
+    np.testing.assert_array_equal(mesh.vertices.numpy()[mesh.faces.numpy()], V2[F2[1:]])
+    # unreferenced vertices are dropped as well
+    V3 = np.vstack([V[:4], [[7.0, 7, 7]]])
+    m3 = Mesh(V3, F[:2], largest_component=True)
+    assert m3.vertex_map.tolist() == [0, 1, 2, 3]
+    # a single component keeps everything
+    m4 = Mesh(V[:4], F[:2], largest_component=True)
+    assert m4.vertex_map.tolist() == [0, 1, 2, 3]
+    assert Mesh(V[:4], F[:2]).vertex_map.tolist() == [0, 1, 2, 3]
+
+
+def test_non_manifold_edge_warns(tmp_path):
+    V = [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]]
+    F = [[0, 1, 2], [0, 1, 3], [0, 1, 4]]
+    path = write_mesh(tmp_path, "fan.off", V, F)
+    with pytest.warns(MeshWarning, match=r"1 non-manifold edge .*first \(0, 1\)") as rec:
+        mesh = load_mesh(path)
+    assert str(path) in str(rec[0].message)
+    assert mesh.n_faces == 3
+    assert mesh.boundary_edges().shape[0] == 6
+
+
+def test_non_manifold_vertex_boundary_orientation_accepted():
+    # two tetrahedra sharing only vertex 0 (pinched), one with flipped faces, plus no warning
+    V = np.vstack([TETRA_V, -TETRA_V[1:]])
+    F2 = np.where(TETRA_F == 0, 0, TETRA_F + 3)[:, ::-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mesh = Mesh(V, np.vstack([TETRA_F, F2]), name="pinched")
+    assert mesh.boundary_edges().shape == (0, 2)
+    # a single triangle with boundary is fine, and so is inconsistent orientation
+    V = [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]
+    mesh = Mesh(V, [[0, 1, 2], [1, 2, 3]])
+    assert mesh.area() == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------- in-memory errors
+def test_shape_errors():
+    with pytest.raises(MeshError, match="^mesh: mesh has no vertices"):
+        Mesh(np.zeros((0, 3)), [[0, 1, 2]])
+    with pytest.raises(MeshError, match=r"^x: vertices must have shape \[n, 3\]"):
+        Mesh(np.zeros((4, 2)), [[0, 1, 2]], name="x")
+    with pytest.raises(MeshError, match="no faces"):
+        Mesh(np.zeros((3, 3)), np.zeros((0, 3), dtype=int))
+    with pytest.raises(MeshError, match="no faces"):
+        Mesh(np.zeros((3, 3)), [])
+    with pytest.raises(MeshError, match="triangulate it first"):
+        Mesh(np.eye(4, 3), [[0, 1, 2, 3]])
+    with pytest.raises(MeshError, match=r"faces must have shape \[m, 3\]"):
+        Mesh(np.eye(3), [0, 1, 2])
+    with pytest.raises(MeshError, match="must be integers"):
+        Mesh(np.eye(3), [[0, 1, 1.5]])
+    with pytest.raises(MeshError, match="non-numeric"):
+        Mesh([["a", "b", "c"]], [[0, 0, 0]])
+
+
+def test_check_false_skips_validation():
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [np.nan, 0, 0]])
+    mesh = Mesh(V, np.array([[0, 1, 2]], dtype=np.int32), check=False)
+    assert mesh.vertices.dtype == torch.float64
+    assert mesh.faces.dtype == torch.int64
+    assert mesh.n_vertices == 4
+
+
+# ------------------------------------------------------------------- round trips
+@pytest.mark.parametrize("ext", [".off", ".OFF", ".ply", ".obj", ".Obj"])
+def test_round_trip_exact(tmp_path, ext):
+    m = trimesh.creation.icosphere(2)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(m.vertices))
+    V = (m.vertices * rng.uniform(0.5, 2.0, size=(1, 3)))[perm] + rng.normal(size=3)
+    F = np.argsort(perm)[m.faces][rng.permutation(len(m.faces))]
+    path = write_mesh(tmp_path, "rand" + ext, V, F)
+    mesh = load_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices.numpy(), V)
+    np.testing.assert_array_equal(mesh.faces.numpy(), F)
+    assert mesh.name == str(path)
+
+
+@pytest.mark.parametrize("ext", ["off", "ply", "obj"])
+def test_round_trip_trimesh_export(tmp_path, ext):
+    V, F = TETRA_V * 1.5 + 0.25, TETRA_F
+    path = tmp_path / f"tetra.{ext}"
+    trimesh.Trimesh(V, F, process=False).export(path)
+    mesh = load_mesh(path)
+    np.testing.assert_allclose(mesh.vertices.numpy(), V, rtol=1e-7)
+    np.testing.assert_array_equal(mesh.faces.numpy(), F)
+
+
+def test_off_header_on_same_line(tmp_path):
+    path = write(tmp_path, "same.off", off_text(TETRA_V, TETRA_F, header_same_line=True))
+    mesh = load_mesh(path)
+    np.testing.assert_array_equal(mesh.faces.numpy(), TETRA_F)
+
+
+def test_obj_corner_formats_and_negative_indices(tmp_path):
+    text = (
+        "# comment\nmtllib x.mtl\no thing\n"
+        "v 0 0 0\nv 1 0 0 1.0\nv 0 1 0 0.5 0.5 0.5\nvt 0 0\nvt 1 0\nvn 0 0 1\n"
+        "  v 0 0 1\n"
+        "f 1/1/1 3/2/1 2/1/1\n"
+        "f 1//1 2//1 4//1  # trailing comment\n"
+        "f\t-3/1 -2/2 -1/1\n"
+        "v 5 5 5\n"
+        "f -5 -2 -3\n"
+    )
+    path = write(tmp_path, "corners.obj", text)
+    with pytest.raises(MeshError, match="1 unreferenced vertex"):
+        load_mesh(path)
+    mesh = load_mesh(path, largest_component=True)
+    assert mesh.faces.tolist() == TETRA_F.tolist()
+    assert mesh.vertex_map.tolist() == [0, 1, 2, 3]
+    assert mesh.vertices[1].tolist() == [1.0, 0.0, 0.0]
+    assert mesh.vertices[2].tolist() == [0.0, 1.0, 0.0]
+
+
+# ------------------------------------------------------------------ bundled data
+def test_spot():
+    mesh = load_mesh(DATA / "spot.obj")
+    assert (mesh.n_vertices, mesh.n_faces) == (2930, 5856)
+    assert mesh.boundary_edges().shape == (0, 2)
+    assert mesh.vertices.is_contiguous()
+    assert repr(mesh) == f"Mesh(name={str(DATA / 'spot.obj')!r}, n_vertices=2930, n_faces=5856)"
+
+
+def test_bs_rest_is_a_disk():
+    mesh = load_mesh(DATA / "bs_rest.obj")
+    assert (mesh.n_vertices, mesh.n_faces) == (19985, 39856)
+    assert mesh.boundary_edges().shape == (112, 2)
+    bv = mesh.boundary_vertices()
+    assert bv.dtype == torch.bool and bv.shape == (19985,)
+    assert int(bv.sum()) == 112  # a single boundary loop
+    n, e, f = mesh.n_vertices, mesh.edges().shape[0], mesh.n_faces
+    assert n - e + f == 1  # Euler characteristic of a disk
+
+
+@pytest.mark.slow
+def test_scape_mesh():
+    path = SHARED / "scape" / "mesh000.off"
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    mesh = load_mesh(path)
+    assert (mesh.n_vertices, mesh.n_faces) == (12500, 24998)
+    # vertex order is exactly the file's
+    tm = trimesh.load(path, process=False, force="mesh")
+    np.testing.assert_array_equal(mesh.vertices.numpy(), tm.vertices)
+
+
+# ------------------------------------------------------------------ Mesh basics
+def test_accepts_numpy_torch_lists():
+    V = [[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    F = [[0, 1, 2]]
+    meshes = [
+        Mesh(V, F),
+        Mesh(np.array(V, dtype=np.float32), np.array(F, dtype=np.int32)),
+        Mesh(torch.tensor(V, dtype=torch.float32), torch.tensor(F)),
+        Mesh(torch.tensor(V).T.contiguous().T, torch.tensor(F, dtype=torch.int32)),
+    ]
+    for mesh in meshes:
+        assert mesh.vertices.dtype == torch.float64 and mesh.vertices.shape == (3, 3)
+        assert mesh.vertices.is_contiguous()
+        assert mesh.faces.dtype == torch.int64 and mesh.faces.shape == (1, 3)
+        assert mesh.vertex_map.tolist() == [0, 1, 2]
+        assert mesh.name is None
+    V2, F2 = meshes[1].numpy()
+    assert V2.dtype == np.float64 and F2.dtype == np.int64
+    V2[0, 0] = 5.0  # a copy: the mesh is unchanged
+    assert meshes[1].vertices[0, 0] == 0.0
+
+
+def test_areas_by_hand():
+    tri = Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    assert tri.face_areas().tolist() == [0.5]
+    assert tri.area() == 0.5
+    V = [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    square = Mesh(V, [[0, 1, 2], [0, 3, 2]])  # second face flipped: areas are unsigned
+    np.testing.assert_allclose(square.face_areas().numpy(), [0.5, 0.5])
+    assert square.area() == pytest.approx(1.0)
+    assert square.bbox_diagonal() == pytest.approx(np.sqrt(2.0))
+    tetra = Mesh(TETRA_V, TETRA_F)
+    assert tetra.area() == pytest.approx(1.5 + np.sqrt(3) / 2)
+
+
+def test_boundary_single_triangle_and_tetrahedron():
+    tri = Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[2, 0, 1]])
+    assert tri.boundary_edges().tolist() == [[0, 1], [0, 2], [1, 2]]
+    assert tri.boundary_vertices().tolist() == [True, True, True]
+    tetra = Mesh(TETRA_V, TETRA_F)
+    assert tetra.boundary_edges().shape == (0, 2)
+    assert not tetra.boundary_vertices().any()
+    assert tetra.edges().shape == (6, 2)
+
+
+def test_edges_and_adjacency_icosahedron():
+    ico = trimesh.creation.icosahedron()
+    mesh = Mesh(ico.vertices, ico.faces, name="ico")
+    E = mesh.edges()
+    assert E.shape == (30, 2) and E.dtype == torch.int64
+    assert bool((E[:, 0] < E[:, 1]).all())
+    keys = (E[:, 0] * mesh.n_vertices + E[:, 1]).numpy()
+    assert np.all(np.diff(keys) > 0)  # lexicographic, unique
+    expected = {tuple(sorted(e)) for e in np.asarray(ico.edges_unique)}
+    assert {tuple(e) for e in E.tolist()} == expected
+    A = mesh.adjacency()
+    assert isinstance(A, sp.csr_matrix) and A.shape == (12, 12)
+    assert (A != A.T).nnz == 0 and A.diagonal().sum() == 0
+    np.testing.assert_array_equal(np.asarray(A.sum(axis=1)).ravel(), np.full(12, 5.0))
+    assert mesh.boundary_edges().shape == (0, 2)
+
+
+def test_with_vertices():
+    ico = trimesh.creation.icosahedron()
+    mesh = Mesh(ico.vertices, ico.faces, name="ico")
+    bigger = mesh.with_vertices(torch.as_tensor(ico.vertices) * 2.0)
+    assert bigger.name == "ico" and bigger.faces is mesh.faces
+    assert bigger.area() == pytest.approx(4.0 * mesh.area())
+    assert bigger.edges().shape == (30, 2)
+    with pytest.raises(MeshError, match=r"^ico: new vertices have shape \(11, 3\)"):
+        mesh.with_vertices(ico.vertices[:11])
+    flat = np.array(ico.vertices)
+    flat[:, 2] = 0.0
+    flat[:, 1] = 0.0  # every face collapses onto a line
+    with pytest.raises(MeshError, match="degenerate"):
+        mesh.with_vertices(flat)
+    bad = np.array(ico.vertices)
+    bad[4] = np.nan
+    with pytest.raises(MeshError, match="first: vertex 4"):
+        mesh.with_vertices(bad)
+
+
+def test_validation_is_fast():
+    import time
+
+    m = trimesh.creation.icosphere(6)  # 40962 vertices, 81920 faces
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    Mesh(V, F)  # warm-up
+    t0 = time.perf_counter()
+    Mesh(V, F)
+    assert time.perf_counter() - t0 < 0.5  # typically ~30 ms; loose bound for busy CI
+
+
+def test_torch_input_is_copied_and_keeps_grad():
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64, requires_grad=True)
+    mesh = Mesh(V, torch.tensor([[0, 1, 2]]))
+    assert mesh.vertices.data_ptr() != V.data_ptr()
+    mesh.area()
+    mesh.face_areas().sum().backward()
+    assert V.grad is not None and V.grad.shape == (3, 3)

@@ -1,0 +1,1048 @@
+"""Shape-matching datasets with an on-disk cache of the per-shape preprocessing.
+
+PyTorch-Geometric style: a :class:`ShapeCollection` is a :class:`torch.utils.data.Dataset` of
+mesh files; with a :class:`Preprocess` it returns every :class:`Shape` together with its
+eigenpairs, ``lambda_max``, HKS and lumped mass, computed once and then read back from an
+``.npz`` cache. A :class:`PairCollection` serves :class:`Pair` items (two shapes and a
+ground-truth correspondence as parallel 0-based index arrays) and loads its shapes through one
+:class:`ShapeCollection`, so pairs that share a shape share its cache entry.
+
+Cache
+-----
+* Directory: ``cache_dir`` argument, else ``$TORCHHEAT_CACHE``, else ``~/.cache/torchheat``.
+* Key: sha256 of the **file bytes**, :meth:`Preprocess.key` (all parameters) and
+  :data:`CACHE_VERSION`. Editing the mesh file or changing any parameter therefore never reuses a
+  stale entry; the key is also stored inside the file and checked on load (an entry that does not
+  match or cannot be read is recomputed and overwritten).
+* Writes are atomic (temporary file in the same directory, then :func:`os.replace`), so
+  concurrent DataLoader workers may compute the same shape safely.
+
+Data loaders
+------------
+:func:`tosca_remeshed_5k`, :func:`tosca_remeshed_5k_symmetry`, :func:`scape`,
+:func:`tosca_hires`, :func:`kids` read the layouts of the ``shared/data`` folder described in its
+README (``root`` argument, else ``$TORCHHEAT_DATA``, else ``<repo>/../shared/data``). That data is
+licensed for academic use and is **not** part of this repository. Index conventions: ``.vts``
+files are 1-based, ``.pid`` landmark files 0-based; every index returned here is 0-based.
+:func:`folder` and :func:`pairs_from_list` build collections from any folder of meshes.
+
+Examples
+--------
+>>> from torchheat.datasets import Preprocess, ShapeCollection, collate_list
+>>> from torch.utils.data import DataLoader
+>>> ds = ShapeCollection(["a.off", "b.off"], preprocess=Preprocess(k=30))  # doctest: +SKIP
+>>> for batch in DataLoader(ds, batch_size=2, collate_fn=collate_list):  # doctest: +SKIP
+...     hk = batch[0].heat_kernel()  # no eigensolve: eigenpairs come from the cache
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+import warnings
+import zipfile
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from .heat import HeatKernel
+from .mesh import Mesh, load_mesh
+
+__all__ = [
+    "CACHE_VERSION",
+    "Pair",
+    "PairCollection",
+    "Preprocess",
+    "Shape",
+    "ShapeCollection",
+    "IdentityGT",
+    "VtsGT",
+    "VtsSymmetryGT",
+    "collate_list",
+    "data_root",
+    "default_cache_dir",
+    "file_sha256",
+    "folder",
+    "kids",
+    "landmarks",
+    "pairs_from_list",
+    "scape",
+    "tosca_hires",
+    "tosca_remeshed_5k",
+    "tosca_remeshed_5k_symmetry",
+]
+
+#: Bumped whenever the layout or meaning of a cache entry changes (old entries are ignored).
+CACHE_VERSION = 1
+
+_KINDS = ("cotan", "fem", "robust")
+_BOUNDARIES = ("neumann", "dirichlet")
+_ARRAY_KEYS = ("eigenvalues", "eigenvectors", "hks", "mass", "times")
+_SCALAR_KEYS = ("lambda_max", "area")
+
+PathLike = str | os.PathLike
+
+
+# --------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------
+def _natural_key(s: str) -> list:
+    """Sort key that orders ``cat2`` before ``cat10``."""
+    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", s)]
+
+
+def _class_from_stem(stem: str) -> str:
+    """``"cat10" -> "cat"``; a stem that is all digits is kept as is."""
+    return re.sub(r"\d+$", "", stem) or stem
+
+
+def file_sha256(path: PathLike, chunk: int = 1 << 20) -> str:
+    """sha256 hex digest of a file's bytes.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "x.txt"
+    >>> _ = p.write_bytes(b"abc")
+    >>> file_sha256(p)[:12]
+    'ba7816bf8f01'
+    """
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def default_cache_dir() -> Path:
+    """``$TORCHHEAT_CACHE`` if set, else ``~/.cache/torchheat``.
+
+    Examples
+    --------
+    >>> default_cache_dir()  # doctest: +SKIP
+    PosixPath('/home/me/.cache/torchheat')
+    """
+    env = os.environ.get("TORCHHEAT_CACHE")
+    if env:
+        return Path(env).expanduser()
+    return Path("~/.cache/torchheat").expanduser()
+
+
+def collate_list(batch: list) -> list:
+    """Identity collate for :class:`~torch.utils.data.DataLoader`: a batch is a plain list.
+
+    Shapes have different vertex counts, so the default collate (stacking) does not apply.
+
+    Examples
+    --------
+    >>> collate_list([1, 2])
+    [1, 2]
+    """
+    return list(batch)
+
+
+def _to_numpy(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+# --------------------------------------------------------------------------------------------
+# preprocessing
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Preprocess:
+    """Parameters of the per-shape preprocessing, and the computation itself.
+
+    Parameters
+    ----------
+    times : tuple of float, optional
+        Heat-kernel times (unit-area scale) for the HKS and for :meth:`Shape.heat_kernel`;
+        ``None`` = :func:`torchheat.default_times`. Lists, arrays and tensors are converted to a
+        tuple of floats. Note that ``None`` and the same values spelled out give different
+        cache keys (the results are identical).
+    k : int
+        Number of eigenpairs (clipped to ``n - 1`` on tiny meshes, as in :class:`HeatKernel`).
+    kind : {"cotan", "fem", "robust"}
+        Laplacian discretisation (:func:`torchheat.laplacian`).
+    boundary : {"neumann", "dirichlet"}
+        Boundary condition.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> from torchheat import Mesh
+    >>> s = trimesh.creation.icosphere(2)
+    >>> pp = Preprocess(k=10)
+    >>> d = pp(Mesh(s.vertices, s.faces))
+    >>> tuple(d["eigenvectors"].shape), tuple(d["hks"].shape)
+    ((162, 10), (162, 10))
+    >>> pp.key() == Preprocess(k=10).key() != Preprocess(k=11).key()
+    True
+    """
+
+    times: tuple[float, ...] | None = None
+    k: int = 40
+    kind: str = "cotan"
+    boundary: str = "neumann"
+
+    def __post_init__(self) -> None:
+        if self.times is not None:
+            t = tuple(float(x) for x in np.asarray(_to_numpy(self.times), dtype=np.float64).ravel())
+            if not t or min(t) <= 0:
+                raise ValueError("times must be a non-empty sequence of positive numbers")
+            object.__setattr__(self, "times", t)
+        if int(self.k) < 1:
+            raise ValueError(f"k must be >= 1, got {self.k}")
+        object.__setattr__(self, "k", int(self.k))
+        if self.kind not in _KINDS:
+            raise ValueError(f"unknown kind {self.kind!r}; use one of {_KINDS}")
+        if self.boundary not in _BOUNDARIES:
+            raise ValueError(f"unknown boundary {self.boundary!r}; use one of {_BOUNDARIES}")
+
+    def params(self) -> dict:
+        """The parameters as a JSON-serialisable dict."""
+        d = asdict(self)
+        d["times"] = None if self.times is None else list(self.times)
+        return d
+
+    def key(self) -> str:
+        """Stable hash (hex, 16 characters) of the parameters and :data:`CACHE_VERSION`.
+
+        Floats are serialised with :func:`repr` (shortest round-trip form), so the key is the
+        same across processes, platforms and Python versions.
+        """
+        payload = json.dumps(
+            {"preprocess": self.params(), "version": CACHE_VERSION}, sort_keys=True
+        )
+        return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+    def heat_kernel(self, mesh: Mesh, **kw: Any) -> HeatKernel:
+        """A fresh :class:`HeatKernel` with these parameters (``kw`` overrides)."""
+        params: dict[str, Any] = {
+            "times": self.times,
+            "k": self.k,
+            "kind": self.kind,
+            "boundary": self.boundary,
+        }
+        params.update(kw)
+        return HeatKernel(mesh, **params)
+
+    def __call__(self, mesh: Mesh) -> dict[str, Any]:
+        """Compute the preprocessing of one mesh.
+
+        Returns
+        -------
+        dict
+            ``eigenvalues`` (k,), ``eigenvectors`` (n, k) mass-orthonormal, ``hks`` (n, J),
+            ``mass`` (n,) lumped mass at unit total area, ``times`` (J,) — float64 tensors —
+            and the floats ``lambda_max`` (spectral bound used by Chebyshev) and ``area``
+            (surface area before normalisation).
+        """
+        hk = self.heat_kernel(mesh)
+        return {
+            "eigenvalues": hk.eigenvalues,
+            "eigenvectors": hk.eigenvectors,
+            "lambda_max": float(hk.lambda_max),
+            "hks": hk.hks(),
+            "mass": hk.laplacian.mass,
+            "area": float(hk.laplacian.area),
+            "times": hk.times.clone(),
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# shapes
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Shape:
+    """One mesh of a collection, with its (cached) preprocessing.
+
+    Attributes
+    ----------
+    name : str
+        File stem (e.g. ``"cat0"``).
+    path : pathlib.Path
+    cls : str
+        Class name (e.g. ``"cat"``).
+    mesh : Mesh
+    data : dict or None
+        Output of :class:`Preprocess` (see :meth:`Preprocess.__call__`), ``None`` when the
+        collection has no preprocessing.
+    preprocess : Preprocess or None
+        The parameters ``data`` was computed with.
+
+    Examples
+    --------
+    >>> shape = ShapeCollection(["cat0.off"], preprocess=Preprocess())[0]  # doctest: +SKIP
+    >>> hk = shape.heat_kernel(rtol=1e-8)  # doctest: +SKIP
+    """
+
+    name: str
+    path: Path
+    cls: str
+    mesh: Mesh
+    data: dict[str, Any] | None = None
+    preprocess: Preprocess | None = field(default=None, repr=False)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices of the mesh."""
+        return int(self.mesh.n_vertices)
+
+    def heat_kernel(self, **kw: Any) -> HeatKernel:
+        """A :class:`HeatKernel` rebuilt from the cached eigenpairs and ``lambda_max``.
+
+        No eigensolve and no Lanczos run happen when ``data`` is present. Keyword arguments go
+        to :class:`HeatKernel` (e.g. ``rtol``, ``method``, ``times``, ``dtype``). A different
+        ``kind`` / ``boundary`` than the cached one, or a larger ``k``, falls back to a fresh
+        computation; a smaller ``k`` uses the first ``k`` cached eigenpairs. Without ``data``
+        the solver is computed from scratch with the collection's (or default) parameters.
+        """
+        pp = self.preprocess or Preprocess()
+        if self.data is None:
+            return pp.heat_kernel(self.mesh, **kw)
+        d = self.data
+        params: dict[str, Any] = {
+            "times": d["times"],
+            "kind": pp.kind,
+            "boundary": pp.boundary,
+        }
+        params.update(kw)
+        if params["kind"] != pp.kind or params["boundary"] != pp.boundary:
+            params.setdefault("k", pp.k)
+            return HeatKernel(self.mesh, **params)
+        params.setdefault("lambda_max", d["lambda_max"])
+        lam, phi = d["eigenvalues"], d["eigenvectors"]
+        k = params.pop("k", None)
+        if k is None or k == pp.k or k == lam.numel():
+            params.setdefault("eigenpairs", (lam, phi))
+        elif k < lam.numel():
+            params.setdefault("eigenpairs", (lam[:k], phi[:, :k]))
+        else:
+            params["k"] = k  # more eigenpairs than cached: solve again
+        return HeatKernel(self.mesh, **params)
+
+
+class ShapeCollection(Dataset):
+    """A dataset of mesh files with an optional, disk-cached :class:`Preprocess`.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        Mesh files (anything :func:`torchheat.load_mesh` reads).
+    classes : sequence of str, optional
+        Class name per file; default: the file stem without trailing digits (``cat10 -> cat``).
+    preprocess : Preprocess, optional
+        Per-shape preprocessing; ``None`` (default) returns shapes with ``data=None`` and
+        touches no cache.
+    cache_dir : path-like, optional
+        Where ``.npz`` cache entries live (created on first write); default
+        :func:`default_cache_dir`.
+    names : sequence of str, optional
+        Shape names; default: file stems (must be unique).
+
+    Examples
+    --------
+    >>> from torch.utils.data import DataLoader
+    >>> ds = ShapeCollection(["cat0.off", "cat1.off"], preprocess=Preprocess())  # doctest: +SKIP
+    >>> shapes = next(iter(DataLoader(ds, batch_size=2, num_workers=2,
+    ...                               collate_fn=collate_list)))  # doctest: +SKIP
+    >>> shapes[0].data["hks"].shape  # doctest: +SKIP
+    torch.Size([5000, 10])
+    """
+
+    def __init__(
+        self,
+        paths: Sequence[PathLike],
+        classes: Sequence[str] | None = None,
+        preprocess: Preprocess | None = None,
+        cache_dir: PathLike | None = None,
+        names: Sequence[str] | None = None,
+    ) -> None:
+        if isinstance(paths, str | os.PathLike):
+            paths = [paths]
+        self.paths = [Path(p) for p in paths]
+        self.names = [p.stem for p in self.paths] if names is None else [str(n) for n in names]
+        if classes is None:
+            classes = [_class_from_stem(n) for n in self.names]
+        self.classes = [str(c) for c in classes]
+        if not (len(self.names) == len(self.classes) == len(self.paths)):
+            raise ValueError("paths, names and classes must have the same length")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError("shape names must be unique (pass names=...)")
+        if preprocess is not None and not isinstance(preprocess, Preprocess):
+            raise TypeError("preprocess must be a torchheat.datasets.Preprocess or None")
+        self.preprocess = preprocess
+        self.cache_dir = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
+        self._index = {n: i for i, n in enumerate(self.names)}
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}({len(self)} shapes, preprocess={self.preprocess}, "
+            f"cache_dir='{self.cache_dir}')"
+        )
+
+    def index(self, name_or_index: str | int) -> int:
+        """Position of a shape given its name (or a possibly negative index)."""
+        if isinstance(name_or_index, str):
+            try:
+                return self._index[name_or_index]
+            except KeyError:
+                raise KeyError(f"no shape named {name_or_index!r} in this collection") from None
+        i = int(name_or_index)
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"shape index {i} out of range for {len(self)} shapes")
+        return i % len(self)
+
+    def cache_path(self, i: int | str, sha: str | None = None) -> Path:
+        """Cache file of shape ``i`` for the current :attr:`preprocess` (hashes the file)."""
+        if self.preprocess is None:
+            raise ValueError("this collection has no preprocess, hence no cache")
+        i = self.index(i)
+        sha = sha or file_sha256(self.paths[i])
+        digest = hashlib.sha256(
+            f"{sha}:{self.preprocess.key()}:v{CACHE_VERSION}".encode()
+        ).hexdigest()
+        stem = re.sub(r"[^A-Za-z0-9_.-]", "_", self.names[i])[:64]
+        return self.cache_dir / f"{stem}.{digest[:32]}.npz"
+
+    def __getitem__(self, i: int | str) -> Shape:
+        i = self.index(i)
+        path = self.paths[i]
+        data = None
+        if self.preprocess is None:
+            mesh = load_mesh(path)
+        else:
+            sha = file_sha256(path)
+            mesh = load_mesh(path)
+            cpath = self.cache_path(i, sha)
+            data = self._load_cache(cpath, sha, mesh)
+            if data is None:
+                data = self.preprocess(mesh)
+                self._save_cache(cpath, sha, data)
+        return Shape(
+            name=self.names[i],
+            path=path,
+            cls=self.classes[i],
+            mesh=mesh,
+            data=data,
+            preprocess=self.preprocess,
+        )
+
+    # ---------------------------------------------------------------------------------
+    def _meta(self, sha: str) -> str:
+        assert self.preprocess is not None
+        return json.dumps(
+            {
+                "version": CACHE_VERSION,
+                "file_sha256": sha,
+                "preprocess_key": self.preprocess.key(),
+                "preprocess": self.preprocess.params(),
+            },
+            sort_keys=True,
+        )
+
+    def _load_cache(self, cpath: Path, sha: str, mesh: Mesh) -> dict[str, Any] | None:
+        if not cpath.is_file():
+            return None
+        try:
+            with np.load(cpath, allow_pickle=False) as z:
+                if str(z["meta"]) != self._meta(sha):
+                    raise ValueError("metadata does not match")
+                data: dict[str, Any] = {k: torch.from_numpy(z[k].copy()) for k in _ARRAY_KEYS}
+                data.update({k: float(z[k]) for k in _SCALAR_KEYS})
+            if data["eigenvectors"].shape[0] != int(mesh.n_vertices):
+                raise ValueError("vertex count does not match the mesh")
+            return data
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+            warnings.warn(f"ignoring unusable cache entry {cpath}: {exc}", stacklevel=3)
+            return None
+
+    def _save_cache(self, cpath: Path, sha: str, data: dict[str, Any]) -> None:
+        cpath.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {k: _to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
+        arrays.update({k: np.float64(data[k]) for k in _SCALAR_KEYS})
+        arrays["meta"] = np.array(self._meta(sha))
+        fd, tmp = tempfile.mkstemp(prefix=f".{cpath.stem}.", suffix=".tmp", dir=cpath.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, cpath)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+
+
+# --------------------------------------------------------------------------------------------
+# pairs and ground truth
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Pair:
+    """Two shapes and a ground-truth correspondence (0-based, source vertex -> target vertex).
+
+    Attributes
+    ----------
+    source, target : Shape
+    gt_src, gt_tgt : torch.LongTensor, shape (m,), or None
+        ``gt_tgt[i]`` is the true match on ``target`` of vertex ``gt_src[i]`` of ``source``.
+        The map may be partial and repeat source vertices (TOSCA ``.vts``); ``None`` when the
+        collection has no ground truth.
+    gt_sym_tgt : torch.LongTensor, shape (m,), or None
+        True match of ``gt_src`` under the intrinsic left/right symmetry, when known.
+    name : str
+        ``"<source>-<target>"``.
+    cls : str
+        Class of the pair (``"<src cls>-<tgt cls>"`` for inter-class pairs).
+    """
+
+    source: Shape
+    target: Shape
+    gt_src: torch.Tensor | None
+    gt_tgt: torch.Tensor | None
+    gt_sym_tgt: torch.Tensor | None
+    name: str
+    cls: str
+
+
+GTResult = tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]
+
+
+def _check_range(idx: np.ndarray, n: int, what: str) -> torch.Tensor:
+    idx = np.asarray(idx, dtype=np.int64).ravel()
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise ValueError(
+            f"ground truth {what} has indices in [{idx.min()}, {idx.max()}], "
+            f"outside [0, {n}) — wrong index base or vertex order?"
+        )
+    return torch.from_numpy(idx)
+
+
+class IdentityGT:
+    """Ground truth of meshes sharing their vertex order: vertex i -> vertex i.
+
+    Examples
+    --------
+    >>> gt = IdentityGT()  # used by scape(), tosca_hires(), kids()
+    """
+
+    def __call__(self, source: Shape, target: Shape) -> GTResult:
+        n, m = source.n_vertices, target.n_vertices
+        if n != m:
+            raise ValueError(
+                f"identity ground truth needs equal vertex counts: {source.name} has {n}, "
+                f"{target.name} has {m}"
+            )
+        idx = torch.arange(n, dtype=torch.int64)
+        return idx, idx.clone(), None
+
+    def __repr__(self) -> str:
+        return "IdentityGT()"
+
+
+def _read_vts(path: Path) -> np.ndarray:
+    """A 1-based ``.vts`` point list as 0-based int64."""
+    if not path.is_file():
+        raise FileNotFoundError(f"ground-truth file not found: {path}")
+    idx = np.loadtxt(path, dtype=np.int64, ndmin=1)
+    if idx.size == 0 or idx.min() < 1:
+        raise ValueError(f"{path}: expected 1-based vertex indices (min >= 1)")
+    return idx - 1
+
+
+@dataclass(frozen=True)
+class VtsGT:
+    """TOSCA/BCICP ``.vts`` ground truth: ``A.vts[k]-1 -> B.vts[k]-1``.
+
+    The symmetric map is ``A.vts[k]-1 -> B.sym.vts[k]-1`` (``None`` if ``B.sym.vts`` is
+    missing).
+
+    Parameters
+    ----------
+    corres_dir : pathlib.Path
+        Folder holding ``<name>.vts`` and ``<name>.sym.vts``.
+    """
+
+    corres_dir: Path
+
+    def __call__(self, source: Shape, target: Shape) -> GTResult:
+        d = Path(self.corres_dir)
+        a = _read_vts(d / f"{source.name}.vts")
+        b = _read_vts(d / f"{target.name}.vts")
+        if a.size != b.size:
+            raise ValueError(f"{source.name}.vts and {target.name}.vts differ in length")
+        sym_path = d / f"{target.name}.sym.vts"
+        bs = _read_vts(sym_path) if sym_path.is_file() else None
+        return (
+            _check_range(a, source.n_vertices, f"{source.name}.vts"),
+            _check_range(b, target.n_vertices, f"{target.name}.vts"),
+            None if bs is None else _check_range(bs, target.n_vertices, sym_path.name),
+        )
+
+
+@dataclass(frozen=True)
+class VtsSymmetryGT:
+    """Self-symmetry ground truth from ``.vts`` files: ``A.vts[k]-1 -> A.sym.vts[k]-1``.
+
+    Used with pairs whose source and target are the same shape; ``gt_sym_tgt`` is ``None``.
+    """
+
+    corres_dir: Path
+
+    def __call__(self, source: Shape, target: Shape) -> GTResult:
+        d = Path(self.corres_dir)
+        a = _read_vts(d / f"{source.name}.vts")
+        s = _read_vts(d / f"{target.name}.sym.vts")
+        if a.size != s.size:
+            raise ValueError(f"{source.name}.vts and {target.name}.sym.vts differ in length")
+        return (
+            _check_range(a, source.n_vertices, f"{source.name}.vts"),
+            _check_range(s, target.n_vertices, f"{target.name}.sym.vts"),
+            None,
+        )
+
+
+GroundTruth = Callable[[Shape, Shape], GTResult]
+
+
+class PairCollection(Dataset):
+    """A dataset of shape pairs with ground truth; shapes come from one :class:`ShapeCollection`.
+
+    Parameters
+    ----------
+    shapes : ShapeCollection
+        Every shape any pair refers to (its cache is shared by all pairs).
+    pairs : sequence of (int or str, int or str)
+        (source, target) by index or name in ``shapes``.
+    gt : callable, "identity" or None
+        ``gt(source, target) -> (gt_src, gt_tgt, gt_sym_tgt)``; must be picklable for
+        multi-worker loading (:class:`IdentityGT`, :class:`VtsGT`, :class:`VtsSymmetryGT` or a
+        module-level function). ``"identity"`` = :class:`IdentityGT`; ``None`` = no ground
+        truth (the three fields are ``None``).
+
+    Examples
+    --------
+    >>> pc = tosca_remeshed_5k()  # doctest: +SKIP
+    >>> p = pc[0]  # doctest: +SKIP
+    >>> p.name, p.gt_src.shape  # doctest: +SKIP
+    ('cat0-cat1', torch.Size([5000]))
+    """
+
+    def __init__(
+        self,
+        shapes: ShapeCollection,
+        pairs: Sequence[tuple[int | str, int | str]],
+        gt: GroundTruth | str | None = "identity",
+    ) -> None:
+        self.shapes = shapes
+        self.pairs = [(shapes.index(a), shapes.index(b)) for a, b in pairs]
+        if gt == "identity":
+            gt = IdentityGT()
+        elif isinstance(gt, str):
+            raise ValueError(f"unknown gt {gt!r}; use 'identity', None or a callable")
+        self.gt = gt
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({len(self)} pairs, gt={self.gt!r}, shapes={self.shapes!r})"
+
+    @property
+    def names(self) -> list[str]:
+        """Pair names ``"<source>-<target>"``."""
+        n = self.shapes.names
+        return [f"{n[a]}-{n[b]}" for a, b in self.pairs]
+
+    def __getitem__(self, i: int) -> Pair:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"pair index {i} out of range for {len(self)} pairs")
+        a, b = self.pairs[i]
+        src = self.shapes[a]
+        tgt = src if b == a else self.shapes[b]
+        if self.gt is None:
+            gs, gtg, gsym = None, None, None
+        else:
+            gs, gtg, gsym = self.gt(src, tgt)
+        cls = src.cls if src.cls == tgt.cls else f"{src.cls}-{tgt.cls}"
+        return Pair(src, tgt, gs, gtg, gsym, f"{src.name}-{tgt.name}", cls)
+
+
+def pairs_from_list(
+    shapes: ShapeCollection,
+    pairs: Sequence[tuple[int | str, int | str]],
+    gt: GroundTruth | str | None = "identity",
+) -> PairCollection:
+    """Pairs of an existing :class:`ShapeCollection`, by name or index.
+
+    Examples
+    --------
+    >>> shapes = folder("meshes/")  # doctest: +SKIP
+    >>> pc = pairs_from_list(shapes, [("rest", "smile")], gt="identity")  # doctest: +SKIP
+    """
+    return PairCollection(shapes, pairs, gt=gt)
+
+
+# --------------------------------------------------------------------------------------------
+# data folders
+# --------------------------------------------------------------------------------------------
+def data_root(root: PathLike | None = None) -> Path:
+    """Folder holding the datasets: ``root``, else ``$TORCHHEAT_DATA``, else
+    ``<repo>/../shared/data``.
+
+    Raises
+    ------
+    FileNotFoundError
+        With instructions, if the folder does not exist.
+    """
+    if root is None:
+        env = os.environ.get("TORCHHEAT_DATA")
+        root = env if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise FileNotFoundError(
+            f"dataset folder {root} not found. Pass root=... or set the environment variable "
+            "TORCHHEAT_DATA to the folder that holds tosca_remeshed_5k/, tosca_hires/, scape/ "
+            "and kids/ (the shared/data folder next to the repository). The data is "
+            "academic-use only and is not shipped with torchheat."
+        )
+    return root
+
+
+def _dataset_dir(root: PathLike | None, name: str, marker: str) -> Path:
+    """``root/name`` or ``root`` itself if it already is that dataset (contains ``marker``)."""
+    base = data_root(root)
+    for cand in (base / name, base):
+        if (cand / marker).exists():
+            return cand
+    raise FileNotFoundError(
+        f"{name} not found under {base} (looked for {base / name / marker}). Pass root=... or "
+        "set TORCHHEAT_DATA to the folder holding the datasets."
+    )
+
+
+def _sorted_files(d: Path, pattern: str) -> list[Path]:
+    files = {p for pat in pattern.split("|") for p in d.glob(pat.strip()) if p.is_file()}
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def _shape_kw(kw: dict) -> dict:
+    allowed = {"preprocess", "cache_dir"}
+    bad = set(kw) - allowed
+    if bad:
+        raise TypeError(f"unexpected keyword arguments {sorted(bad)}; allowed: {sorted(allowed)}")
+    return kw
+
+
+def _within_class_pairs(shapes: ShapeCollection, mode: str) -> list[tuple[int, int]]:
+    by_cls: dict[str, list[int]] = {}
+    for i, c in enumerate(shapes.classes):
+        by_cls.setdefault(c, []).append(i)
+    out: list[tuple[int, int]] = []
+    for idx in by_cls.values():
+        if mode == "all":
+            out += [(a, b) for j, a in enumerate(idx) for b in idx[j + 1 :]]
+        elif mode == "first":
+            out += [(idx[0], b) for b in idx[1:]]
+        else:
+            raise ValueError(f"unknown pairs mode {mode!r}")
+    return out
+
+
+def folder(
+    path: PathLike,
+    pattern: str = "*.off|*.ply|*.obj",
+    classes: Sequence[str] | None = None,
+    **kw: Any,
+) -> ShapeCollection:
+    """All meshes of a folder (natural name order) as a :class:`ShapeCollection`.
+
+    Parameters
+    ----------
+    path : path-like
+        The folder (not searched recursively).
+    pattern : str
+        Glob patterns separated by ``|``.
+    classes : sequence of str, optional
+        Class per file; default: stem without trailing digits.
+    **kw
+        ``preprocess``, ``cache_dir`` (see :class:`ShapeCollection`).
+
+    Examples
+    --------
+    >>> shapes = folder("meshes/", preprocess=Preprocess(k=30))  # doctest: +SKIP
+    """
+    d = Path(path).expanduser()
+    if not d.is_dir():
+        raise FileNotFoundError(f"mesh folder {d} does not exist")
+    files = _sorted_files(d, pattern)
+    if not files:
+        raise FileNotFoundError(f"no files matching {pattern!r} in {d}")
+    return ShapeCollection(files, classes=classes, **_shape_kw(kw))
+
+
+def tosca_remeshed_5k(
+    root: PathLike | None = None,
+    pairs: str | Sequence[tuple[str, str]] = "test",
+    classes: Sequence[str] | None = None,
+    **kw: Any,
+) -> PairCollection:
+    """TOSCA isometric shapes remeshed to ~5k vertices (Ren et al. 2018, BCICP data).
+
+    76 shapes in 8 classes; ground truth from the 1-based ``vtx_5k/corres/<name>.vts`` files:
+    ``A.vts[k]-1 -> B.vts[k]-1`` (5000 entries, partial: some source vertices repeat), and the
+    symmetric map ``A.vts[k]-1 -> B.sym.vts[k]-1`` in ``gt_sym_tgt``.
+
+    Parameters
+    ----------
+    root : path-like, optional
+        Data folder (see :func:`data_root`) or the ``tosca_remeshed_5k`` folder itself.
+    pairs : "test", "all" or sequence of (name, name)
+        ``"test"``: the 284 pairs of ``test_pairs.txt`` (the paper's protocol); ``"all"``: every
+        within-class pair ``(i, j)``, ``i < j`` in natural name order (414 pairs).
+    classes : sequence of str, optional
+        Keep only these classes (e.g. ``["cat", "wolf"]``).
+    **kw
+        ``preprocess``, ``cache_dir`` (see :class:`ShapeCollection`).
+
+    Examples
+    --------
+    >>> pc = tosca_remeshed_5k(preprocess=Preprocess())  # doctest: +SKIP
+    >>> len(pc), pc[0].name, pc[0].gt_src.shape  # doctest: +SKIP
+    (284, 'cat0-cat1', torch.Size([5000]))
+    """
+    d = _dataset_dir(root, "tosca_remeshed_5k", "vtx_5k")
+    files = _sorted_files(d / "vtx_5k", "*.off")
+    if classes is not None:
+        keep = set(classes)
+        files = [f for f in files if _class_from_stem(f.stem) in keep]
+    shapes = ShapeCollection(files, **_shape_kw(kw))
+    if isinstance(pairs, str) and pairs == "test":
+        lines = (d / "test_pairs.txt").read_text().splitlines()
+        plist = [tuple(ln.split()) for ln in lines if ln.strip()]
+        if classes is not None:
+            plist = [p for p in plist if p[0] in shapes._index and p[1] in shapes._index]
+        idx = [(shapes.index(a), shapes.index(b)) for a, b in plist]
+    elif isinstance(pairs, str):
+        idx = _within_class_pairs(shapes, pairs)
+    else:
+        idx = [(shapes.index(a), shapes.index(b)) for a, b in pairs]
+    return PairCollection(shapes, idx, gt=VtsGT(d / "vtx_5k" / "corres"))
+
+
+def tosca_remeshed_5k_symmetry(
+    root: PathLike | None = None,
+    classes: Sequence[str] | None = None,
+    **kw: Any,
+) -> PairCollection:
+    """Self-symmetry ground truth of the 76 TOSCA 5k shapes: one pair ``(A, A)`` per shape.
+
+    ``gt_src = A.vts - 1``, ``gt_tgt = A.sym.vts - 1`` (the intrinsic left/right symmetry);
+    ``gt_sym_tgt`` is ``None``.
+
+    Examples
+    --------
+    >>> sym = tosca_remeshed_5k_symmetry(classes=["cat"])  # doctest: +SKIP
+    >>> p = sym[0]; p.source is p.target  # doctest: +SKIP
+    True
+    """
+    d = _dataset_dir(root, "tosca_remeshed_5k", "vtx_5k")
+    files = _sorted_files(d / "vtx_5k", "*.off")
+    if classes is not None:
+        keep = set(classes)
+        files = [f for f in files if _class_from_stem(f.stem) in keep]
+    shapes = ShapeCollection(files, **_shape_kw(kw))
+    return PairCollection(
+        shapes, [(i, i) for i in range(len(shapes))], gt=VtsSymmetryGT(d / "vtx_5k" / "corres")
+    )
+
+
+def scape(
+    root: PathLike | None = None,
+    pairs: Sequence[tuple[int | str, int | str]] | None = None,
+    **kw: Any,
+) -> PairCollection:
+    """SCAPE, 20 poses of one person (12500 vertices each), identity ground truth.
+
+    Parameters
+    ----------
+    root : path-like, optional
+        Data folder (see :func:`data_root`) or the ``scape`` folder itself.
+    pairs : sequence of (int or str, int or str), optional
+        Default: the 40 pairs ``(i, (i + d) % 20)`` for ``d`` in (1, 2) — every pose against its
+        next and next-but-one pose, so each shape is a source twice and a target twice.
+    **kw
+        ``preprocess``, ``cache_dir``.
+
+    Notes
+    -----
+    ``gt_sym_tgt`` is ``None``: SCAPE's symmetry information (:func:`landmarks`) covers 36
+    landmarks only, not a dense map. Class name: ``"scape"``.
+
+    Examples
+    --------
+    >>> pc = scape()  # doctest: +SKIP
+    >>> len(pc), pc.names[0]  # doctest: +SKIP
+    (40, 'mesh000-mesh001')
+    """
+    d = _dataset_dir(root, "scape", "mesh000.off")
+    files = _sorted_files(d, "mesh*.off")
+    shapes = ShapeCollection(files, classes=["scape"] * len(files), **_shape_kw(kw))
+    n = len(shapes)
+    if pairs is None:
+        pairs = [(i, (i + dd) % n) for dd in (1, 2) for i in range(n)]
+    return PairCollection(shapes, pairs, gt="identity")
+
+
+def tosca_hires(
+    root: PathLike | None = None,
+    classes: Sequence[str] | None = None,
+    pairs: str | Sequence[tuple[str, str]] = "first",
+    **kw: Any,
+) -> PairCollection:
+    """TOSCA high-resolution meshes (41 shapes, 7 classes), identity ground truth in a class.
+
+    Parameters
+    ----------
+    root : path-like, optional
+        Data folder (see :func:`data_root`) or the ``tosca_hires`` folder itself.
+    classes : sequence of str, optional
+        Keep only these classes (cat, centaur, david, dog, horse, victoria, wolf).
+    pairs : "first", "all" or sequence of (name, name)
+        ``"first"`` (default): the first shape of each class (natural order: ``cat0``, ...)
+        against every other shape of the class (34 pairs for all classes); ``"all"``: every
+        within-class pair ``i < j``.
+    **kw
+        ``preprocess``, ``cache_dir``.
+
+    Notes
+    -----
+    Several meshes have small holes and some (centaur3/4, david0/1, horse5/6) inconsistent
+    face orientation; the Laplacian uses unsigned areas, so this is harmless.
+
+    Examples
+    --------
+    >>> pc = tosca_hires(classes=["wolf"])  # doctest: +SKIP
+    >>> pc.names  # doctest: +SKIP
+    ['wolf0-wolf1', 'wolf0-wolf2']
+    """
+    d = _dataset_dir(root, "tosca_hires", "landmarks")
+    files = _sorted_files(d, "*.off")
+    if classes is not None:
+        keep = set(classes)
+        unknown = keep - {_class_from_stem(f.stem) for f in files}
+        if unknown:
+            raise ValueError(f"unknown TOSCA classes {sorted(unknown)}")
+        files = [f for f in files if _class_from_stem(f.stem) in keep]
+    shapes = ShapeCollection(files, **_shape_kw(kw))
+    plist = _within_class_pairs(shapes, pairs) if isinstance(pairs, str) else pairs
+    return PairCollection(shapes, plist, gt="identity")
+
+
+def kids(root: PathLike | None = None, **kw: Any) -> PairCollection:
+    """KIDS subject 0001 (3 shapes, 59727 vertices each), identity ground truth.
+
+    Pairs: ``null.0 -> isometry.1``, ``null.0 -> isometry.2``, ``isometry.1 -> isometry.2``.
+    Class name: ``"kids"``.
+
+    Examples
+    --------
+    >>> pc = kids()  # doctest: +SKIP
+    >>> len(pc), pc.names[0]  # doctest: +SKIP
+    (3, '0001.null.0-0001.isometry.1')
+    """
+    d = _dataset_dir(root, "kids", "0001.null.0.off")
+    names = ["0001.null.0", "0001.isometry.1", "0001.isometry.2"]
+    files = [d / f"{n}.off" for n in names]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise FileNotFoundError(f"KIDS files missing: {missing}")
+    shapes = ShapeCollection(files, classes=["kids"] * 3, **_shape_kw(kw))
+    return PairCollection(shapes, [(0, 1), (0, 2), (1, 2)], gt="identity")
+
+
+def landmarks(
+    root: PathLike | None = None,
+    dataset: str = "tosca_hires",
+    cls: str | None = None,
+) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Sparse landmarks of the Princeton benchmark (Kim et al. 2011) for TOSCA or SCAPE.
+
+    Parameters
+    ----------
+    root : path-like, optional
+        Data folder (see :func:`data_root`) or the dataset folder itself.
+    dataset : {"tosca_hires", "scape"}
+    cls : str
+        TOSCA class (``"cat"``, ...); ignored for SCAPE (one landmark set, ``1.pid``).
+
+    Returns
+    -------
+    idx : numpy.ndarray of int64, shape (L,)
+        0-based vertex index of each landmark (``.pid`` files are 0-based); valid for every
+        pose of the class.
+    names : list of str
+        Description of each landmark (``.info``), e.g. ``"eye, right"``.
+    sym_pairs : numpy.ndarray of int64, shape (P, 2)
+        Pairs of landmark numbers (rows of ``idx``) that are left/right mirror images
+        (first block of ``.sym.info``; the landmarks on the symmetry plane are not returned).
+
+    Examples
+    --------
+    >>> idx, names, sym = landmarks(dataset="tosca_hires", cls="cat")  # doctest: +SKIP
+    >>> len(idx), sym.shape[1]  # doctest: +SKIP
+    (21, 2)
+    """
+    if dataset == "tosca_hires":
+        if not cls:
+            raise ValueError("cls is required for tosca_hires (e.g. 'cat')")
+        d = _dataset_dir(root, "tosca_hires", "landmarks") / "landmarks"
+        stem = cls
+    elif dataset == "scape":
+        d = _dataset_dir(root, "scape", "landmarks") / "landmarks"
+        stem = "1"
+    else:
+        raise ValueError(f"unknown dataset {dataset!r}; use 'tosca_hires' or 'scape'")
+    pid = d / f"{stem}.pid"
+    if not pid.is_file():
+        raise FileNotFoundError(f"no landmark file {pid}")
+    rows = np.loadtxt(pid, dtype=np.int64, ndmin=2)
+    idx = rows[:, 0].copy()
+    names: list[str] = []
+    info = d / f"{stem}.info"
+    if info.is_file():
+        for ln in info.read_text().splitlines():
+            if ln.strip():
+                names.append(re.sub(r"^\s*\d+\s*:\s*", "", ln).strip())
+    sym: list[tuple[int, int]] = []
+    sym_file = d / f"{stem}.sym.info"
+    if sym_file.is_file():
+        for ln in sym_file.read_text().splitlines():
+            parts = ln.split()
+            if not parts:
+                if sym:
+                    break  # a blank line ends the pair block
+                continue
+            if len(parts) != 2:
+                break
+            sym.append((int(parts[0]), int(parts[1])))
+    sym_arr = np.asarray(sym, dtype=np.int64).reshape(-1, 2)
+    if sym_arr.size and sym_arr.max() >= idx.size:
+        raise ValueError(f"{sym_file}: landmark number out of range")
+    return idx, names, sym_arr
