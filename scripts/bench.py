@@ -133,7 +133,7 @@ def main(argv=None) -> None:
     h = sub.add_parser("heat", help="heat-kernel columns: torchheat vs scipy")
     h.add_argument("--mesh", help="mesh file (default: a ~10k-vertex bumpy ellipsoid)")
     h.add_argument("--sources", type=int, default=64)
-    h.add_argument("--ref-sources", type=int, default=4,
+    h.add_argument("--ref-sources", type=int, default=2,
                    help="sources timed with expm_multiply (extrapolated to --sources)")
     h.add_argument("--threads", type=int, default=None)
     h.add_argument("--repeat", type=int, default=3)
