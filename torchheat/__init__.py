@@ -8,12 +8,14 @@ Heat Kernel", SGP 2010. Modules, in the order data flows through them:
 """
 
 from .heat import HeatKernel, default_times
+from .matching import Correspondence, PreparedShape, match, prepare, symmetry
 from .mesh import Mesh, MeshError, MeshWarning, load_mesh
 from .operators import Laplacian, cotmatrix, laplacian, massmatrix
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Correspondence",
     "HeatKernel",
     "Laplacian",
     "Mesh",
@@ -24,4 +26,8 @@ __all__ = [
     "laplacian",
     "load_mesh",
     "massmatrix",
+    "match",
+    "prepare",
+    "PreparedShape",
+    "symmetry",
 ]
