@@ -36,7 +36,8 @@ def generic_mesh(subdivisions: int = 5, seed: int = 0) -> Mesh:
 
     m = trimesh.creation.icosphere(subdivisions)
     rng = np.random.default_rng(seed)
-    V = m.vertices * np.array([1.0, 0.7, 0.5]) * (1 + 0.02 * rng.standard_normal((len(m.vertices), 1)))
+    bumps = 1 + 0.02 * rng.standard_normal((len(m.vertices), 1))
+    V = m.vertices * np.array([1.0, 0.7, 0.5]) * bumps
     return Mesh(V, m.faces, name=f"bumpy-ellipsoid-{len(V)}")
 
 
