@@ -30,7 +30,13 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .descriptors import farthest_point_sampling, feature_points, heat_kernel_map, hks
+from .descriptors import (
+    farthest_point_sampling,
+    feature_points,
+    heat_kernel_map,
+    hks,
+    ring_neighbors,
+)
 from .heat import HeatKernel, threads
 from .mesh import Mesh
 
@@ -52,33 +58,74 @@ __all__ = [
 # ------------------------------------------------------------------------------------------
 @dataclass
 class _Budget:
+    """Bookkeeping of the last cdist call: the largest working set of one block (bytes).
+
+    A block of ``r`` query rows against ``c`` reference rows (dimension ``d``, element size
+    ``e``) holds the distance block ``r c e``, the ``min`` outputs ``r (e + 8)`` and, for
+    ``p = 2`` (where ``torch.cdist`` goes through a matrix product), the padded copies and
+    their temporaries, at most ``(r + c)(2d + 4) e``.
+    """
+
     peak_bytes: int = 0
+    budget_bytes: int = 0
+    block: tuple[int, int] = (0, 0)
 
 
 LAST_CDIST_PEAK = _Budget()
 
 
+def _block_bytes(r: int, c: int, d: int, esize: int, euclid: bool) -> int:
+    extra = (r + c) * (2 * d + 4) * esize if euclid else 0
+    return r * c * esize + r * (esize + 8) + extra
+
+
+def _plan_blocks(n: int, m: int, d: int, esize: int, euclid: bool,
+                 memory_bytes: int) -> tuple[int, int]:
+    """Largest (rows, cols) block whose working set fits ``memory_bytes`` (whole rows first)."""
+    per_row = _block_bytes(1, m, d, esize, euclid) - _block_bytes(0, m, d, esize, euclid)
+    rows = (memory_bytes - _block_bytes(0, m, d, esize, euclid)) // per_row
+    if rows >= 1:
+        return int(min(rows, n)), m
+    per_col = _block_bytes(1, 1, d, esize, euclid) - _block_bytes(1, 0, d, esize, euclid)
+    cols = (memory_bytes - _block_bytes(1, 0, d, esize, euclid)) // per_col
+    return 1, int(max(1, min(cols, m)))  # below one element's working set: best effort
+
+
 def _nn_cdist(
     X: torch.Tensor, Y: torch.Tensor, p: float, memory_bytes: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Chunked exact NN with torch.cdist; never materialises more than ``memory_bytes``."""
+    """Chunked exact NN with torch.cdist; a block's working set stays within ``memory_bytes``.
+
+    Ties resolve to the lowest index (``min`` returns the first minimum of a block; a later
+    block replaces the current best only when strictly closer).
+    """
     n, m = X.shape[0], Y.shape[0]
+    d = X.shape[1]
     esize = X.element_size()
-    rows = max(1, int(memory_bytes // max(1, m * esize)))
-    cols = m if rows > 1 or m * esize <= memory_bytes else max(1, int(memory_bytes // esize))
+    euclid = float(p) == 2.0
+    rows, cols = _plan_blocks(n, m, d, esize, euclid, int(memory_bytes))
     best_d = torch.full((n,), math.inf, dtype=X.dtype, device=X.device)
     best_i = torch.zeros(n, dtype=torch.int64, device=X.device)
     peak = 0
     for r0 in range(0, n, rows):
         Xr = X[r0 : r0 + rows]
+        bd, bi = best_d[r0 : r0 + rows], best_i[r0 : r0 + rows]  # views
         for c0 in range(0, m, cols):
-            D = torch.cdist(Xr, Y[c0 : c0 + cols], p=p)
-            peak = max(peak, D.numel() * esize)
-            d, i = D.min(dim=1)  # first (lowest) index among ties
-            better = d < best_d[r0 : r0 + rows]
-            best_d[r0 : r0 + rows] = torch.where(better, d, best_d[r0 : r0 + rows])
-            best_i[r0 : r0 + rows] = torch.where(better, i + c0, best_i[r0 : r0 + rows])
+            Yc = Y[c0 : c0 + cols]
+            peak = max(peak, _block_bytes(Xr.shape[0], Yc.shape[0], d, esize, euclid))
+            D = torch.cdist(Xr, Yc, p=p)
+            dmin, i = D.min(dim=1)  # first (lowest) index among ties
+            del D
+            if c0 == 0:
+                bd.copy_(dmin)
+                bi.copy_(i)
+            else:
+                better = dmin < bd
+                bd.copy_(torch.where(better, dmin, bd))
+                bi.copy_(torch.where(better, i + c0, bi))
     LAST_CDIST_PEAK.peak_bytes = peak
+    LAST_CDIST_PEAK.budget_bytes = int(memory_bytes)
+    LAST_CDIST_PEAK.block = (rows, cols)
     return best_d, best_i
 
 
@@ -536,6 +583,49 @@ def _augment(src, tgt, samples, g, rows, iterations, Dp_full):
     return out, g, energy
 
 
+def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
+               radius: float) -> int | None:
+    """Second source landmark if the one-point map of ``p`` is ambiguous, else None.
+
+    The map from ``p`` alone is ambiguous when a self-isometry of the source fixes ``p``
+    (e.g. ``p`` on the plane of a mirror-symmetric shape): then most vertices ``x`` have a
+    *twin* ``x'``, far from ``x``, whose descriptor is ten times closer to ``x``'s than any
+    mesh neighbour's. The twins are found by a 2-NN self-search of the descriptor on 256
+    spread samples (the first ``rows``); if more than a quarter of them qualify, the vertex
+    farthest from its twin is returned: its image separates the two maps.
+    """
+    D = _descriptor(src, [p], use_hks).double().cpu().numpy()
+    V, _ = src.mesh.numpy()
+    r = (farthest_point_sampling(V, 256) if rows is None else rows[:256]).numpy()
+    dist, idx = cKDTree(D).query(D[r], k=2, p=np.inf)
+    first_is_self = idx[:, 0] == r
+    twin = np.where(first_is_self, idx[:, 1], idx[:, 0])
+    dtwin = np.where(first_is_self, dist[:, 1], dist[:, 0])
+    A = ring_neighbors(src.mesh, 1).tocoo()
+    dedge = np.abs(D[A.row] - D[A.col]).max(axis=1)
+    dlocal = np.full(src.n, np.inf)
+    np.minimum.at(dlocal, A.row, dedge)
+    sep = np.linalg.norm(V[r] - V[twin], axis=1)
+    qual = (sep > radius) & (dtwin < 0.1 * dlocal[r])
+    if qual.mean() <= 0.25:
+        return None
+    return int(r[np.argmax(np.where(qual, sep, -1.0))])
+
+
+def _expand(src, tgt, p, q, p2, use_hks, radius, limit=2) -> list[list[tuple[int, int]]]:
+    """Landmark hypotheses from ``(p, q)``: ``[(p, q)]`` or, when ``p2`` disambiguates, one
+    ``[(p, q), (p2, q2)]`` per distinct near-best image ``q2`` of ``p2``."""
+    if p2 is None:
+        return [[(p, q)]]
+    Dp = _descriptor(src, [p], use_hks)[p2].double().cpu().numpy()
+    Dq = _descriptor(tgt, [q], use_hks).double().cpu().numpy()
+    k = min(64, tgt.n)
+    _, nb = cKDTree(Dq).query(Dp, k=k, p=np.inf)
+    W, _ = tgt.mesh.numpy()
+    q2s = _distinct(torch.as_tensor(np.atleast_1d(nb)), W, radius, limit)
+    return [[(p, q), (p2, int(q2))] for q2 in q2s]
+
+
 def match(
     source: Mesh | PreparedShape,
     target: Mesh | PreparedShape,
@@ -612,6 +702,8 @@ def match(
     """
     if method not in ("refine", "paper"):
         raise ValueError(f"unknown method {method!r}; use 'refine' or 'paper'")
+    if engine not in ("auto", "cdist", "kdtree"):
+        raise ValueError(f"unknown engine {engine!r}; use 'auto', 'cdist' or 'kdtree'")
     if landmarks < 1:
         raise ValueError("landmarks must be >= 1")
     t_start = time.perf_counter()
@@ -649,10 +741,18 @@ def match(
             scores = landmark_scores(src, tgt, p, cands, use_hks=use_hks, engine=engine)
         else:
             pool = tgt.features
+            if not bool((src.features == p).any()):
+                # a landmark that is no feature point has no feature image: candidates are
+                # the 2-ring local minima of the HKS distance to p (its image is one)
+                dh = (tgt.hks - src.hks[p].to(tgt.hks.dtype)).abs().amax(dim=1)
+                pool = feature_points(tgt.mesh, -dh, rings=2,
+                                      max_features=max(int(max_features), 2 * n_candidates))
             scores = landmark_scores(src, tgt, p, pool, use_hks=use_hks, engine=engine,
                                      samples=score_rows)
             order = torch.argsort(scores, stable=True)
             cands, scores = pool[order], scores[order]
+        diam_s = float(np.linalg.norm(Vs.max(0) - Vs.min(0)))
+        p2 = _ambiguity(src, p, use_hks, score_rows, 0.05 * diam_s)
         timings["landmark_search"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -660,11 +760,11 @@ def match(
         orient = float("nan")
         hypotheses = []
         if method == "paper":
-            hyp = _distinct(cands, Vt, 0.05 * diam_t, 2)
+            hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, 2)
+                   for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)][:2]
             results = []
-            for q in hyp:
-                lms = [(p, q)]
-                if landmarks > 1:
+            for lms in hyp:
+                if len(lms) < landmarks:
                     lms = _greedy_landmarks(src, tgt, lms, landmarks, use_hks, engine)
                 fmap, dist = dense_map(src, tgt, lms, use_hks=use_hks, engine=engine)
                 results.append({"landmarks": lms, "map": fmap,
@@ -682,17 +782,18 @@ def match(
             rows = torch.cat([samples, rows[~torch.isin(rows, samples)]])  # samples first
             pos = torch.full((src.n,), -1, dtype=torch.int64)
             pos[rows] = torch.arange(rows.numel())
-            hyp = _distinct(cands, Vt, 0.05 * diam_t, n_candidates)
+            hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, n_candidates)
+                   for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)]
             Dp_full = heat_kernel_map(src.hk, samples, time_index=_REFINE_TIMES)
             results = []
-            for q in hyp:
-                g_rows, _ = _sample_map(src, tgt, [(p, q)], rows, use_hks, engine)
+            for lms0 in hyp:
+                g_rows, _ = _sample_map(src, tgt, lms0, rows, use_hks, engine)
                 g = g_rows[: samples.numel()]
                 f_rows, g, energy = _augment(src, tgt, samples, g, rows, refine_iterations,
                                                  Dp_full)
                 o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
-                results.append({"q": q, "g": g, "energy": energy, "orientation": o})
-                hypotheses.append(([(p, q)], energy, o))
+                results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
+                hypotheses.append((lms0, energy, o))
             timings["hypotheses"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             by_energy = sorted(results, key=lambda r: r["energy"])
@@ -709,7 +810,7 @@ def match(
                     continue
                 r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
                                                     Dp_full)
-                r["landmarks"] = [(p, r["q"])] + [
+                r["landmarks"] = list(r["lms0"]) + [
                     (int(a), int(b)) for a, b in zip(samples.tolist(), r["g"].tolist(),
                                                      strict=True)
                 ]
@@ -774,7 +875,9 @@ def symmetry(
     >>> symmetry(Mesh(V, m.faces)).map.shape
     torch.Size([642])
     """
-    shape = _as_prepared(mesh, times=options.get("times"))
+    t = options.get("times")
+    shape = _as_prepared(mesh, times="adaptive" if t is None else t,
+                         max_features=options.get("max_features", 50))
     options.setdefault("n_candidates", 8)
     corr = match(shape, shape, **options)
     if corr.symmetric_map is None:

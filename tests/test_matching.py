@@ -1,0 +1,312 @@
+"""Matching pipeline: nearest-neighbour engines, descriptors and one-point matching.
+
+References are independent of the library: brute-force numpy searches, known vertex
+permutations (a permuted, rigidly moved copy is exactly isometric, so the permutation is the
+exact answer) and the known mirror permutation of a mesh symmetric under y -> -y.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from conftest import generic_sphere
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from torchheat import HeatKernel, Mesh
+from torchheat import matching as tm
+from torchheat.descriptors import feature_points, heat_kernel_map
+from torchheat.matching import match, nearest_neighbors, orientation_score, prepare, symmetry
+
+
+# ------------------------------------------------------------------------------------------
+# meshes with known answers
+# ------------------------------------------------------------------------------------------
+def moved_copy(V, F, seed):
+    """Randomly permuted + rotated + translated copy; returns (W, G, perm) with vertex x of
+    the original at index perm[x] of the copy."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(V))  # copy vertex i = original vertex order[i]
+    perm = np.argsort(order)
+    R = Rotation.random(random_state=seed).as_matrix()
+    W = V[order] @ R.T + rng.normal(size=3)
+    return W, perm[F], perm
+
+
+def mirror_mesh(subdivisions=3):
+    """Bumpy, asymmetric in x and z, exactly symmetric under y -> -y (vertices and faces)."""
+    m = trimesh.creation.icosphere(subdivisions)
+    V = np.array(m.vertices)
+    x, y, z = V.T
+    s = 1 + 0.15 * np.sin(3 * x + 1) * np.cos(2 * z) + 0.1 * np.cos(4 * y**2 + x) + 0.12 * z * x
+    V = V * np.array([1.0, 0.7, 0.5]) * s[:, None]
+    V[:, 0] += 0.2 * z**2
+    return V, np.asarray(m.faces, dtype=np.int64)
+
+
+def mirror_permutation(V):
+    d, i = cKDTree(V).query(V * np.array([1.0, -1.0, 1.0]))
+    assert d.max() < 1e-9
+    return i
+
+
+def exact(fmap, truth):
+    return float((fmap.numpy() == np.asarray(truth)).mean())
+
+
+@pytest.fixture(scope="module")
+def asym_pair():
+    V, F = generic_sphere(3)
+    W, G, perm = moved_copy(V, F, seed=7)
+    S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
+    return S, T, perm
+
+
+@pytest.fixture(scope="module")
+def mirror_pair():
+    V, F = mirror_mesh(3)
+    mp = mirror_permutation(V)
+    # the connectivity is symmetric too: the mirror is an exact discrete isometry
+    faces = {tuple(sorted(f)) for f in F.tolist()}
+    assert {tuple(sorted(f)) for f in mp[F].tolist()} == faces
+    assert (mp != np.arange(len(V))).sum() > 0.9 * len(V)
+    W, G, perm = moved_copy(V, F, seed=11)
+    S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
+    return S, T, perm, mp
+
+
+# ------------------------------------------------------------------------------------------
+# nearest neighbours
+# ------------------------------------------------------------------------------------------
+def _brute(X, Y, p):
+    diff = np.abs(X[:, None, :] - Y[None, :, :])
+    D = diff.max(axis=2) if math.isinf(p) else np.sqrt((diff**2).sum(axis=2))
+    return D.min(axis=1), D.argmin(axis=1), np.sort(D, axis=1)
+
+
+@pytest.mark.parametrize("p", [math.inf, 2.0])
+@pytest.mark.parametrize("engine", ["cdist", "kdtree"])
+def test_nearest_neighbors_match_brute_force(p, engine):
+    rng = np.random.default_rng(3)
+    X, Y = rng.standard_normal((300, 12)), rng.standard_normal((250, 12))
+    dref, iref, Ds = _brute(X, Y, p)
+    d, i = nearest_neighbors(torch.from_numpy(X), torch.from_numpy(Y), p=p, engine=engine)
+    assert d.dtype == torch.float64 and i.dtype == torch.int64
+    if math.isinf(p):
+        np.testing.assert_array_equal(d.numpy(), dref)  # max of |differences|: exact
+    else:
+        np.testing.assert_allclose(d.numpy(), dref, rtol=1e-12)
+    clear = (Ds[:, 1] - Ds[:, 0]) > 1e-9 * Ds[:, 1]  # no (near) tie
+    assert clear.mean() > 0.99
+    np.testing.assert_array_equal(i.numpy()[clear], iref[clear])
+
+
+@pytest.mark.parametrize("p", [math.inf, 2.0])
+def test_cdist_ties_resolve_to_lowest_index(p):
+    X = torch.tensor([[0.0, 0.0], [5.0, 5.0]], dtype=torch.float64)
+    # X[0] is at distance 1 from rows 1, 3, 4 (L-inf and L2); X[1] from rows 2 and 5
+    Y = torch.tensor([[3.0, 3.0], [1.0, 0.0], [6.0, 5.0], [0.0, -1.0], [-1.0, 0.0],
+                      [5.0, 4.0]], dtype=torch.float64)
+    for mem in (256 * 2**20, 2**10, 1):  # one block, column blocks, single elements
+        d, i = nearest_neighbors(X, Y, p=p, engine="cdist", memory_bytes=mem)
+        assert i.tolist() == [1, 2]
+        assert d.tolist() == [1.0, 1.0]
+    # the tie lies across column blocks: still the lowest index
+    d, i = nearest_neighbors(X[:1], Y[[0, 3, 1, 4]], p=p, engine="cdist", memory_bytes=1)
+    assert i.tolist() == [1]
+
+
+@pytest.mark.parametrize("p", [math.inf, 2.0])
+def test_cdist_memory_budget(p):
+    rng = np.random.default_rng(5)
+    X = torch.from_numpy(rng.standard_normal((60, 8)))
+    Y = torch.from_numpy(rng.standard_normal((200, 8)))
+    d0, i0 = nearest_neighbors(X, Y, p=p, engine="cdist")
+    assert tm.LAST_CDIST_PEAK.block == (60, 200)  # one block under the default budget
+    # the peak counts at least the whole distance block
+    assert tm.LAST_CDIST_PEAK.peak_bytes >= 60 * 200 * 8
+    budget = 4 * 2**10
+    d, i = nearest_neighbors(X, Y, p=p, engine="cdist", memory_bytes=budget)
+    peak = tm.LAST_CDIST_PEAK
+    assert 0 < peak.peak_bytes <= budget
+    r, c = peak.block
+    assert r * c * 8 <= budget and r * c < 60 * 200
+    torch.testing.assert_close(d, d0, rtol=1e-12, atol=0)
+    assert torch.equal(i, i0)
+    # the measured bookkeeping: the largest distance block of torch.cdist fits
+    assert torch.cdist(X[:r], Y[:c], p=p).numel() * 8 <= budget
+
+
+def test_nearest_neighbors_bad_input():
+    X = torch.zeros(3, 2, dtype=torch.float64)
+    with pytest.raises(ValueError):
+        nearest_neighbors(X, X, engine="faiss")
+    with pytest.raises(ValueError):
+        nearest_neighbors(X, torch.zeros(3, 4, dtype=torch.float64))
+
+
+# ------------------------------------------------------------------------------------------
+# descriptors
+# ------------------------------------------------------------------------------------------
+def test_feature_points_height_on_sphere():
+    s = trimesh.creation.icosphere(3)
+    mesh = Mesh(s.vertices, s.faces)
+    V = np.asarray(s.vertices)
+    # known field: two bumps; maxima at the two vertices nearest to the bump centres
+    c1, c2 = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    i1, i2 = int(np.argmax(V @ c1)), int(np.argmax(V @ c2))
+    h = 2.0 * np.exp(-8 * ((V - V[i1]) ** 2).sum(1)) + np.exp(-8 * ((V - V[i2]) ** 2).sum(1))
+    f = feature_points(mesh, h, rings=2)
+    assert f.tolist() == [i1, i2]
+    # height z: one maximum, the top vertex
+    assert feature_points(mesh, V[:, 2]).tolist() == [int(np.argmax(V[:, 2]))]
+    # brute-force 2-ring maxima of a random field, ordered, with the cap
+    rng = np.random.default_rng(0)
+    g = rng.standard_normal(len(V))
+    A = mesh.adjacency()
+    A2 = ((A + A @ A) > 0).toarray()
+    np.fill_diagonal(A2, False)
+    ref = [x for x in range(len(V)) if all(g[x] > g[y] for y in np.flatnonzero(A2[x]))]
+    ref = sorted(ref, key=lambda x: -g[x])
+    got = feature_points(mesh, g, rings=2, max_features=None)
+    assert got.tolist() == ref and len(ref) > 10
+    capped = feature_points(mesh, torch.from_numpy(g), rings=2, max_features=7)
+    assert capped.tolist() == ref[:7]
+
+
+def test_heat_kernel_map_entries(small_mesh):
+    hk = HeatKernel(small_mesh, times=[0.01, 0.1, 1.0])
+    lms = [5, 17]
+    Phi = heat_kernel_map(hk, lms)
+    assert Phi.shape == (small_mesh.n_vertices, 6)
+    t = hk.times
+    for li, lm in enumerate(lms):
+        C = hk.columns([lm])  # one source at a time: [1, n, J]
+        for x in (0, 33, 101):
+            for j in range(3):
+                assert Phi[x, li * 3 + j] == pytest.approx(float(t[j] * C[0, x, j]), rel=1e-9)
+    # symmetric kernel: k_t(p, x) = k_t(x, p)
+    Cx = hk.columns([33])
+    assert float(Phi[33, 1]) == pytest.approx(float(t[1] * Cx[0, 5, 1]), rel=1e-6)
+    sub = heat_kernel_map(hk, lms, time_index=[2])
+    torch.testing.assert_close(sub, Phi[:, [2, 5]])
+
+
+# ------------------------------------------------------------------------------------------
+# matching an asymmetric shape to a permuted, moved copy
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("engine", ["cdist", "kdtree"])
+@pytest.mark.parametrize("landmarks", [1, 2])
+def test_paper_pipeline_recovers_permutation(asym_pair, engine, landmarks):
+    S, T, perm = asym_pair
+    corr = match(S, T, method="paper", landmarks=landmarks, engine=engine)
+    assert exact(corr.map, perm) == 1.0
+    assert len(corr.landmarks) == landmarks
+    for a, b in corr.landmarks:
+        assert perm[a] == b
+    assert bool((corr.scores[1:] >= corr.scores[:-1]).all())
+    assert int(corr.candidates[0]) == perm[corr.info["p"]]
+    assert float(corr.scores[0]) < 1e-20  # exact isometry: zero error
+
+
+def test_refine_pipeline_recovers_permutation(asym_pair):
+    S, T, perm = asym_pair
+    corr = match(S, T)
+    assert exact(corr.map, perm) == 1.0
+    assert corr.orientation > 0.9
+    assert all(perm[a] == b for a, b in corr.landmarks)
+
+
+def test_given_landmark_pair(asym_pair):
+    S, T, perm = asym_pair
+    p = 123
+    corr = match(S, T, landmark=(p, int(perm[p])), method="paper")
+    assert exact(corr.map, perm) == 1.0
+    assert corr.landmarks[0] == (p, int(perm[p]))
+    assert corr.candidates.tolist() == [int(perm[p])]
+    corr = match(S, T, landmark=(p, int(perm[p])))
+    assert exact(corr.map, perm) == 1.0
+
+
+def test_given_source_landmark_not_a_feature(asym_pair):
+    S, T, perm = asym_pair
+    p = 200
+    assert p not in S.features.tolist()
+    corr = match(S, T, landmark=p, method="paper")
+    assert corr.landmarks[0] == (p, int(perm[p]))
+    assert exact(corr.map, perm) == 1.0
+
+
+# ------------------------------------------------------------------------------------------
+# mirror-symmetric shape: direct and symmetric maps
+# ------------------------------------------------------------------------------------------
+def test_mirror_symmetric_both_maps(mirror_pair):
+    S, T, perm, mp = mirror_pair
+    corr = match(S, T)
+    assert corr.symmetric_map is not None
+    assert exact(corr.map, perm) >= 0.95
+    assert exact(corr.symmetric_map, perm[mp]) >= 0.95
+    assert corr.orientation > 0.9
+
+
+def test_mirror_symmetric_landmark_off_plane(mirror_pair):
+    S, T, perm, mp = mirror_pair
+    V = S.mesh.numpy()[0]
+    p = int(np.argmax(V[:, 1]))  # far from the plane
+    corr = match(S, T, landmark=p)
+    assert exact(corr.map, perm) >= 0.95
+    assert exact(corr.symmetric_map, perm[mp]) >= 0.95
+
+
+def test_mirror_symmetric_landmark_on_plane(mirror_pair):
+    S, T, perm, mp = mirror_pair
+    V = S.mesh.numpy()[0]
+    on_plane = np.flatnonzero(V[:, 1] == 0.0)
+    p = int(on_plane[len(on_plane) // 3])
+    assert mp[p] == p
+    corr = match(S, T, landmark=p)
+    assert corr.landmarks[0] == (p, int(perm[p]))
+    assert exact(corr.map, perm) >= 0.95
+    assert exact(corr.symmetric_map, perm[mp]) >= 0.95
+
+
+def test_symmetry_finds_mirror(mirror_pair):
+    S, _, _, mp = mirror_pair
+    corr = symmetry(S)
+    assert exact(corr.map, mp) >= 0.95
+    assert exact(corr.map, np.arange(S.n)) < 0.2
+    assert corr.orientation < -0.9
+    assert exact(corr.symmetric_map, np.arange(S.n)) >= 0.95
+
+
+def test_orientation_score(mirror_pair, asym_pair):
+    S, T, perm, mp = mirror_pair
+    assert orientation_score(S, S, torch.arange(S.n)) > 0.9
+    assert orientation_score(S, S, torch.from_numpy(mp)) < -0.9
+    assert orientation_score(S, T, torch.from_numpy(perm)) > 0.9  # rotation keeps it
+    assert orientation_score(S, T, torch.from_numpy(perm[mp])) < -0.9
+    A, _, _ = asym_pair
+    assert orientation_score(A, A, torch.arange(A.n)) > 0.9
+
+
+# ------------------------------------------------------------------------------------------
+# bad input
+# ------------------------------------------------------------------------------------------
+def test_bad_input(asym_pair):
+    S, T, _ = asym_pair
+    with pytest.raises(IndexError):
+        match(S, T, landmark=S.n)
+    with pytest.raises(IndexError):
+        match(S, T, landmark=-1)
+    with pytest.raises(IndexError):
+        match(S, T, landmark=(0, T.n + 3))
+    with pytest.raises(ValueError):
+        match(S, T, method="exact")
+    with pytest.raises(ValueError):
+        match(S, T, engine="faiss", method="paper")
+    with pytest.raises(ValueError):
+        match(S, T, landmarks=0)
