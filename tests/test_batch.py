@@ -1,0 +1,216 @@
+"""Batch evaluation (torchheat.batch): output files, resume after a kill, partial lines."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SMOKE = ROOT / "configs" / "smoke.yaml"
+needs_data = pytest.mark.skipif(
+    not (SHARED / "tosca_remeshed_5k").is_dir(), reason="shared/data not available"
+)
+
+batch = pytest.importorskip("torchheat.batch")
+
+
+def _config(tmp: Path, out: Path, **over) -> Path:
+    cfg = yaml.safe_load(SMOKE.read_text())
+    cfg.update(output=str(out), pictures=0, **over)
+    cfg.setdefault("dataset_args", {})["root"] = str(SHARED)
+    path = tmp / f"{out.name}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _lines(out: Path) -> list[dict]:
+    return [json.loads(s) for s in (out / "results.jsonl").read_text().splitlines()]
+
+
+def _numbers(recs: list[dict]) -> dict[str, tuple]:
+    return {r["name"]: (r["direct"], r["flip"], r["flip_choice"], r["landmarks"], r["curve"])
+            for r in recs}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted run over the 3 smoke pairs (shared by the tests below)."""
+    tmp = tmp_path_factory.mktemp("batch")
+    out = tmp / "ref"
+    cfg = _config(tmp, out)
+    results = batch.run(cfg, progress=False)
+    return tmp, out, cfg, results
+
+
+@needs_data
+def test_run_writes_lines_and_summary_and_rerun_does_nothing(reference, monkeypatch):
+    tmp, out, cfg, results = reference
+    assert [r["name"] for r in results] == ["cat0-cat1", "cat0-cat10", "cat0-cat2"]
+    lines = _lines(out)
+    assert len(lines) == 3 and {r["name"] for r in lines} == {r["name"] for r in results}
+    for f in ("summary.md", "summary.csv", "curves.png"):
+        assert (out / f).stat().st_size > 0
+    r = lines[0]
+    assert set(r["direct"]) == {"mean", "under_0.25", "under_0.1", "under_0.05", "exact"}
+    assert r["flip_choice"] in ("direct", "symmetric") and r["flip"] is not None
+    assert r["flip"]["mean"] <= r["direct"]["mean"]
+    assert len(r["curve"]) == len(r["curve_thresholds"]) == len(batch.CURVE_THRESHOLDS)
+    assert np.all(np.diff(r["curve"]) >= 0) and r["curve"][-1] == r["direct"]["under_0.25"]
+    assert r["time_match"] > 0 and r["time_eval"] > 0 and r["landmark"] is not None
+
+    calls = []
+    monkeypatch.setattr(batch, "evaluate_pair", lambda *a, **k: calls.append(a))
+    before = (out / "results.jsonl").read_bytes()
+    again = batch.run(cfg, progress=False)
+    assert calls == [] and (out / "results.jsonl").read_bytes() == before
+    assert _numbers(again) == _numbers(results)
+
+
+@needs_data
+def test_errors_match_evaluate_module(reference):
+    """The union-of-sources evaluation equals torchheat.evaluate.geodesic_errors."""
+    from torchheat import datasets
+    from torchheat.evaluate import geodesic_errors
+
+    pair = datasets.tosca_remeshed_5k(root=SHARED, classes=["wolf"])[0]
+    rng = np.random.default_rng(0)
+    rows = np.arange(0, len(pair.gt_src), 50)
+    pred = rng.integers(0, pair.target.mesh.n_vertices, len(rows))
+    gt, gs = pair.gt_tgt.numpy()[rows], pair.gt_sym_tgt.numpy()[rows]
+    mine = batch._TargetGeodesics(pair.target.mesh).errors(pred, [gt, gs])
+    assert np.array_equal(mine[0], geodesic_errors(pair.target.mesh, pred, gt))
+    assert np.array_equal(mine[1], geodesic_errors(pair.target.mesh, pred, gs))
+
+
+@needs_data
+def test_resume_after_sigkill(reference):
+    tmp, ref_out, _, ref_results = reference
+    out = tmp / "killed"
+    cfg = _config(tmp, out)
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "scripts" / "evaluate.py"), str(cfg), "--no-progress"],
+        cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    res = out / "results.jsonl"
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            if res.is_file() and res.read_bytes().count(b"\n") >= 1:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    n_before = res.read_bytes().count(b"\n")
+    assert 1 <= n_before < 3
+    resumed = batch.run(cfg, progress=False)
+    lines = _lines(out)
+    names = [r["name"] for r in lines]
+    assert len(names) == len(set(names)) == 3
+    assert set(names) == {r["name"] for r in ref_results}
+    assert _numbers(lines) == _numbers(_lines(ref_out)) == _numbers(resumed)
+
+
+@needs_data
+def test_trailing_partial_line_is_repaired(reference, tmp_path):
+    _, ref_out, _, ref_results = reference
+    out = tmp_path / "partial"
+    out.mkdir()
+    full = (ref_out / "results.jsonl").read_bytes().splitlines(keepends=True)
+    # two complete records, then half of the third (a kill in the middle of a write)
+    (out / "results.jsonl").write_bytes(full[0] + full[1] + full[2][: len(full[2]) // 2])
+    cfg = _config(tmp_path, out)
+    results = batch.run(cfg, progress=False)
+    lines = _lines(out)
+    assert [r["name"] for r in lines[:2]] == [json.loads(full[i])["name"] for i in (0, 1)]
+    assert len(lines) == 3 and len({r["name"] for r in lines}) == 3
+    assert _numbers(results) == _numbers(ref_results)
+
+
+@needs_data
+def test_any_object_with_map_is_an_executor(reference, tmp_path):
+    _, _, _, ref_results = reference
+
+    class Reversed:  # results arrive out of order, like dask's as_completed
+        calls = 0
+
+        def map(self, fn, iterable):
+            Reversed.calls += 1
+            return [fn(t) for t in reversed(list(iterable))]
+
+    out = tmp_path / "custom"
+    results = batch.run(_config(tmp_path, out, limit=2), executor=Reversed(), progress=False)
+    assert Reversed.calls == 1
+    assert [r["name"] for r in results] == [r["name"] for r in ref_results[:2]]
+    assert _numbers(results) == _numbers(ref_results[:2])
+    assert len(_lines(out)) == 2
+
+
+def test_load_results_ignores_partial_line(tmp_path):
+    p = tmp_path / "results.jsonl"
+    p.write_text('{"key": "a#1", "name": "a"}\n{"key": "b#1", "na')
+    assert [r["key"] for r in batch.load_results(p, repair=False)] == ["a#1"]
+    assert p.read_text().endswith('"na')  # untouched without repair
+    assert [r["key"] for r in batch.load_results(p)] == ["a#1"]
+    assert p.read_text() == '{"key": "a#1", "name": "a"}\n'
+
+
+def _rec(name: str, cls: str, mean: float, u25: float, flip25: float | None, t: float) -> dict:
+    d = {"mean": mean, "under_0.25": u25, "under_0.1": u25 / 2, "under_0.05": u25 / 4,
+         "exact": 0.0}
+    flip = None if flip25 is None else {**d, "under_0.25": flip25}
+    thr = list(batch.CURVE_THRESHOLDS)
+    return {"key": f"{name}#x", "name": name, "cls": cls, "direct": d, "flip": flip,
+            "flip_choice": None if flip is None else "direct", "time_prepare": 0.0,
+            "time_match": t, "time_eval": 1.0, "curve_thresholds": thr,
+            "curve": list(np.linspace(0, u25, len(thr))),
+            "flip_curve": None if flip is None else list(np.linspace(0, flip25, len(thr))),
+            "distortion": None}
+
+
+def test_summarize_run_per_class(tmp_path):
+    recs = [_rec("cat0-cat1", "cat", 0.1, 0.8, 0.9, 2.0),
+            _rec("cat0-cat2", "cat", 0.3, 0.4, 0.5, 4.0),
+            _rec("dog0-dog1", "dog", 0.2, 0.6, None, 6.0)]
+    overall = batch.summarize_run(recs, tmp_path)
+    rows = {(r["level"], r["name"]): r for r in csv.DictReader(open(tmp_path / "summary.csv"))}
+    cat, dog = rows[("class", "cat")], rows[("class", "dog")]
+    assert int(cat["pairs"]) == 2 and float(cat["mean_error"]) == pytest.approx(0.2)
+    assert float(cat["pct_under_0.25"]) == pytest.approx(60.0)
+    assert float(cat["pct_under_0.1"]) == pytest.approx(30.0)
+    assert float(cat["flip_pct_under_0.25"]) == pytest.approx(70.0)
+    assert float(cat["time_per_pair_s"]) == pytest.approx(4.0)
+    assert dog["flip_pct_under_0.25"] == "" and float(dog["pct_under_0.25"]) == pytest.approx(60)
+    assert overall["pairs"] == 3 and overall["mean_error"] == pytest.approx(0.2)
+    assert overall["flip_pct_under_0.25"] == pytest.approx(70.0)  # pairs with symmetric gt
+    assert float(rows[("pair", "dog0-dog1")]["time_match_s"]) == pytest.approx(6.0)
+    md = (tmp_path / "summary.md").read_text()
+    assert "## Per class" in md and "| cat | 2 |" in md
+    assert (tmp_path / "curves.png").stat().st_size > 0
+    assert not list(tmp_path.glob(".*"))  # no temporary files left
+
+
+def test_bad_config_gives_one_line_error(tmp_path, capsys):
+    assert batch.main([str(tmp_path / "missing.yaml")]) == 2
+    assert "not found" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\ndataset: nope\n")
+    assert batch.main([str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "dataset" in err and "\n" not in err
+    bad.write_text("name: x\ndataset: scape\nlimt: 3\n")
+    assert batch.main([str(bad)]) == 2
+    assert "unknown keys" in capsys.readouterr().err

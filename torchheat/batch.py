@@ -1,0 +1,1036 @@
+"""Batch evaluation of the matcher over a dataset, resumable, with a pluggable executor.
+
+A run is described by a small YAML config (see ``configs/``)::
+
+    name: tosca5k                 # output goes to out/<name> unless `output` is given
+    dataset: tosca_remeshed_5k    # a loader of torchheat.datasets
+    dataset_args: {pairs: test}   # its keyword arguments (root: optional)
+    task: match                   # or "symmetry" (self-maps vs. the self-symmetry gt)
+    match: {method: refine}       # keyword arguments of torchheat.match / symmetry
+    prepare: {k: 100}             # optional keyword arguments of torchheat.prepare
+    limit: null                   # optional: only the first N pairs
+    eval_points: null             # optional: evaluate on N evenly spaced gt rows only
+    pictures: 3                   # colour-transfer PNGs of the first few pairs
+    distortion: false             # also compute the geodesic distortion (~0.3 s / pair)
+
+Design
+------
+* :func:`evaluate_pair` is one pure per-pair task (match, then evaluation) returning a JSON-able
+  dict. :func:`run` maps a picklable wrapper of it over the pairs with an **executor**: the
+  built-in ``map`` in-process by default, a :class:`concurrent.futures.ProcessPoolExecutor`
+  for ``workers > 1`` (torch set to one thread per worker), or any object with a
+  ``map(fn, iterable)`` method — e.g. a two-line Dask adapter::
+
+      from dask.distributed import Client, as_completed
+
+      class DaskExecutor:
+          def __init__(self, client):
+              self.client = client
+
+          def map(self, fn, iterable):
+              futures = self.client.map(fn, list(iterable), pure=False)
+              for fut in as_completed(futures):   # records in completion order
+                  yield fut.result()
+
+      run("configs/tosca5k.yaml", executor=DaskExecutor(Client("scheduler:8786")))
+
+  The tasks shipped to the executor are tiny (dataset name, arguments, pair index, options);
+  each worker loads its pair from the data folder itself (which must be visible to it, e.g.
+  through ``TORCHHEAT_DATA``). Records may arrive in any order: each carries its key.
+* **Resumable, crash-safe output**: every finished pair is appended as ONE line of
+  ``<output>/results.jsonl`` (``O_APPEND`` write of the whole line, then ``os.fsync``). On
+  start, a trailing partial line (a kill in the middle of a write) is cut off, and pairs whose
+  key (pair name + hash of task and match/prepare options) is already in the file are skipped,
+  so a run killed at any moment resumes without losing or duplicating a result. The other outputs
+  (``summary.md``, ``summary.csv``, ``curves.png``, ``maps/``, ``pictures/``, ``config.yaml``)
+  are written to a temporary file and renamed. An exclusive lock on
+  ``<output>/.lock`` stops two runs from appending to the same file.
+* **Process-local memo caches** (results do not depend on them, only the speed): the prepared
+  source and target shapes (:func:`torchheat.prepare`, LRU of 16 each) and, per target shape,
+  the geodesic solver with its distance fields (LRU of 8 targets, fields up to
+  ``$TORCHHEAT_FIELD_CACHE_MB`` = 512 MB per process). Pending pairs are scheduled grouped by
+  target so consecutive pairs reuse the target's fields.
+
+Evaluation cost (TOSCA 5k, 2 busy cores, heat-method geodesics at ~1.9 ms per source)
+------------------------------------------------------------------------------------
+The Princeton error needs one distance field per distinct ground-truth image on the target.
+The direct and the symmetric ground truth (flip-aware error) are evaluated together from the
+union of their sources: cat0-cat2 needs 4323 fields, 7.8 s, against 10.8 s for
+:func:`torchheat.evaluate.flip_aware_errors` (two passes); a later pair with the same target
+takes 0.01 s (cached fields, 165 MB: the ground-truth images of a target are the same for every
+source of its class). In the 10-pair run of ``configs/tosca5k.yaml`` (all targets distinct,
+machine under load) evaluation took 6.5-19 s per pair (mean 12.7 s) next to 18.4 s for
+prepare + match. Over all 284 test pairs (76 targets at most, scheduled grouped by target) the
+evaluation amortises to ~2-3 s per pair.
+The numbers are identical to :func:`~torchheat.evaluate.flip_aware_errors` (same fields).
+
+Examples
+--------
+>>> from torchheat.batch import run, summarize_run  # doctest: +SKIP
+>>> results = run("configs/smoke.yaml", workers=2)  # doctest: +SKIP
+>>> results[0]["direct"]["under_0.25"]  # doctest: +SKIP
+0.8528
+"""
+
+from __future__ import annotations
+
+import argparse
+import builtins
+import concurrent.futures as cf
+import contextlib
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+import traceback
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+__all__ = [
+    "CURVE_THRESHOLDS",
+    "ConfigError",
+    "Executor",
+    "PairTask",
+    "evaluate_pair",
+    "load_config",
+    "load_results",
+    "main",
+    "run",
+    "summarize_run",
+]
+
+#: Fixed threshold grid of the per-pair cumulative curves (so curves can be averaged).
+CURVE_THRESHOLDS: tuple[float, ...] = tuple(float(x) for x in np.round(np.linspace(0, 0.25, 51), 6))
+
+_LOADERS = ("tosca_remeshed_5k", "tosca_remeshed_5k_symmetry", "scape", "tosca_hires", "kids",
+            "folder")
+_TASKS = ("match", "symmetry")
+_CONFIG_KEYS = {"name", "dataset", "dataset_args", "task", "match", "prepare", "limit",
+                "eval_points", "output", "pictures", "distortion"}
+_PREPARE_KEYS = {"k", "feature_time", "rtol", "kind", "boundary"}
+RESULTS = "results.jsonl"
+
+
+class ConfigError(ValueError):
+    """A missing or invalid run configuration."""
+
+
+class Executor(Protocol):
+    """Anything with ``map(fn, iterable) -> iterable of results`` (order may differ)."""
+
+    def map(self, fn: Callable[[Any], Any], iterable: Iterable[Any]) -> Iterable[Any]: ...
+
+
+# --------------------------------------------------------------------------------------------
+# configuration
+# --------------------------------------------------------------------------------------------
+def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]:
+    """Read (YAML file) or take (mapping) a run configuration, validate it, fill defaults.
+
+    Parameters
+    ----------
+    config : path-like or mapping
+        A YAML file or an already parsed dict.
+
+    Returns
+    -------
+    dict
+        Keys ``name, dataset, dataset_args, task, match, prepare, limit, eval_points, output,
+        pictures, distortion`` (``output`` defaults to ``out/<name>``).
+
+    Raises
+    ------
+    ConfigError
+        With a one-line explanation.
+
+    Examples
+    --------
+    >>> cfg = load_config({"name": "x", "dataset": "scape"})
+    >>> cfg["task"], cfg["output"], cfg["pictures"]
+    ('match', 'out/x', 3)
+    """
+    if isinstance(config, Mapping):
+        raw: Any = dict(config)
+        where = "config"
+    else:
+        path = Path(config)
+        where = str(path)
+        if not path.is_file():
+            raise ConfigError(f"config file {path} not found")
+        import yaml
+
+        try:
+            raw = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: expected a mapping of settings at the top level")
+    unknown = set(raw) - _CONFIG_KEYS
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {sorted(unknown)}; allowed: "
+                          f"{sorted(_CONFIG_KEYS)}")
+    cfg: dict[str, Any] = {
+        "name": raw.get("name"),
+        "dataset": raw.get("dataset"),
+        "dataset_args": raw.get("dataset_args") or {},
+        "task": raw.get("task", "match"),
+        "match": raw.get("match") or {},
+        "prepare": raw.get("prepare") or {},
+        "limit": raw.get("limit"),
+        "eval_points": raw.get("eval_points"),
+        "output": raw.get("output"),
+        "pictures": raw.get("pictures", 3),
+        "distortion": raw.get("distortion", False),
+    }
+    if not isinstance(cfg["name"], str) or not cfg["name"].strip():
+        raise ConfigError(f"{where}: 'name' (a non-empty string) is required")
+    if cfg["dataset"] not in _LOADERS:
+        raise ConfigError(f"{where}: 'dataset' must be one of {list(_LOADERS)}, "
+                          f"got {cfg['dataset']!r}")
+    for key in ("dataset_args", "match", "prepare"):
+        if not isinstance(cfg[key], dict):
+            raise ConfigError(f"{where}: '{key}' must be a mapping")
+    if cfg["task"] not in _TASKS:
+        raise ConfigError(f"{where}: 'task' must be one of {list(_TASKS)}, got {cfg['task']!r}")
+    bad = set(cfg["prepare"]) - _PREPARE_KEYS
+    if bad:
+        raise ConfigError(f"{where}: unknown prepare options {sorted(bad)}; allowed: "
+                          f"{sorted(_PREPARE_KEYS)}")
+    for key in ("limit", "eval_points"):
+        v = cfg[key]
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ConfigError(f"{where}: '{key}' must be a positive integer or null, got {v!r}")
+    p = cfg["pictures"]
+    if isinstance(p, bool) or not isinstance(p, int) or p < 0:
+        raise ConfigError(f"{where}: 'pictures' must be an integer >= 0, got {p!r}")
+    if not isinstance(cfg["distortion"], bool):
+        raise ConfigError(f"{where}: 'distortion' must be true or false")
+    if cfg["output"] is None:
+        cfg["output"] = f"out/{cfg['name']}"
+    cfg["output"] = str(cfg["output"])
+    if cfg["dataset"] == "folder" and "path" not in cfg["dataset_args"]:
+        raise ConfigError(f"{where}: dataset 'folder' needs dataset_args.path and .pairs")
+    return cfg
+
+
+def options_hash(cfg: Mapping[str, Any]) -> str:
+    """Hash (12 hex characters) of what determines a pair's result: task, match, prepare and
+    eval_points settings.
+
+    Examples
+    --------
+    >>> a = options_hash({"task": "match", "match": {"method": "paper"}})
+    >>> a == options_hash({"task": "match", "match": {"method": "paper"}, "prepare": {}})
+    True
+    """
+    payload = json.dumps(
+        {"task": cfg.get("task", "match"), "match": dict(cfg.get("match") or {}),
+         "prepare": dict(cfg.get("prepare") or {}), "eval_points": cfg.get("eval_points")},
+        sort_keys=True, default=str,
+    )
+    return hashlib.sha256(payload.encode()).hexdigest()[:12]
+
+
+# --------------------------------------------------------------------------------------------
+# process-local caches (memoisation only: results never depend on them)
+# --------------------------------------------------------------------------------------------
+class _LRU(OrderedDict):
+    def __init__(self, maxsize: int) -> None:
+        super().__init__()
+        self.maxsize = maxsize
+
+    def get_or(self, key: Any, make: Callable[[], Any]) -> Any:
+        if key in self:
+            self.move_to_end(key)
+            return self[key]
+        value = make()
+        self[key] = value
+        while len(self) > self.maxsize:
+            _, old = self.popitem(last=False)
+            if hasattr(old, "release"):
+                old.release()
+        return value
+
+
+_PREPARED = {"source": _LRU(16), "target": _LRU(16)}
+_GEODESICS = _LRU(8)
+_DATASETS = _LRU(4)
+_FIELD_BUDGET = int(float(os.environ.get("TORCHHEAT_FIELD_CACHE_MB", "512")) * 2**20)
+
+
+class _TargetGeodesics:
+    """A :class:`~torchheat.evaluate.GeodesicSolver` and the distance fields computed so far."""
+
+    cached_bytes = 0  # over all instances alive in the process-wide LRU
+
+    def __init__(self, mesh: Any) -> None:
+        from .evaluate import GeodesicSolver
+
+        self.solver = GeodesicSolver(mesh)
+        self.fields: dict[int, np.ndarray] = {}
+        self.nbytes = 0
+
+    def release(self) -> None:
+        _TargetGeodesics.cached_bytes -= self.nbytes
+        self.fields.clear()
+        self.nbytes = 0
+
+    def field(self, s: int) -> np.ndarray:
+        f = self.fields.get(s)
+        if f is None:
+            f = self.solver.distances(np.array([s]))[0]
+            if _TargetGeodesics.cached_bytes + f.nbytes > _FIELD_BUDGET:
+                for other in list(_GEODESICS.values()):  # least recently used first
+                    if _TargetGeodesics.cached_bytes + f.nbytes <= _FIELD_BUDGET:
+                        break
+                    if other is not self:
+                        other.release()
+            if _TargetGeodesics.cached_bytes + f.nbytes <= _FIELD_BUDGET:
+                self.fields[s] = f
+                self.nbytes += f.nbytes
+                _TargetGeodesics.cached_bytes += f.nbytes
+        return f
+
+    def errors(self, pred: np.ndarray, gts: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """``d(gt[x], pred[x]) / sqrt(area)`` for each gt array, one field per unique gt
+        source over all of them (same convention as :func:`torchheat.evaluate.geodesic_errors`:
+        the ground truth is the source side)."""
+        k = len(pred)
+        a = np.concatenate([np.asarray(g, dtype=np.int64) for g in gts])
+        b = np.tile(np.asarray(pred, dtype=np.int64), len(gts))
+        out = np.zeros(len(a), dtype=np.float64)
+        differ = np.flatnonzero(a != b)
+        order = differ[np.argsort(a[differ], kind="stable")]
+        uniq, starts = np.unique(a[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        for s, lo, hi in zip(uniq.tolist(), starts, ends, strict=True):
+            idx = order[lo:hi]
+            out[idx] = self.field(int(s))[b[idx]]
+        out /= math.sqrt(self.solver.area)
+        return [out[i * k:(i + 1) * k] for i in range(len(gts))]
+
+
+def _shape_key(shape: Any) -> tuple[str, str, int]:
+    return (shape.name, str(getattr(shape, "path", "")), int(shape.mesh.n_vertices))
+
+
+def _geodesics(shape: Any) -> _TargetGeodesics:
+    return _GEODESICS.get_or(_shape_key(shape), lambda: _TargetGeodesics(shape.mesh))
+
+
+def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
+              prep_opts: Mapping[str, Any]) -> Any:
+    """Prepared shape for one role. Sources are never modified by :func:`torchheat.match`;
+    targets get the source's time samples (a stateless re-plan), so a target is only ever
+    reused as a target."""
+    from .heat import threads
+    from .matching import prepare
+
+    times = match_opts.get("times")
+    kw = dict(prep_opts)
+    kw["times"] = "adaptive" if times is None else times
+    kw["max_features"] = match_opts.get("max_features", 50)
+    key = (_shape_key(shape), json.dumps(kw, sort_keys=True, default=str))
+
+    def make() -> Any:
+        with threads(match_opts.get("num_threads")):
+            return prepare(shape.mesh, **kw)
+
+    return _PREPARED[role].get_or(key, make)
+
+
+def clear_caches() -> None:
+    """Drop the process-local caches (prepared shapes, geodesic fields, datasets)."""
+    for g in _GEODESICS.values():
+        g.release()
+    for c in (*_PREPARED.values(), _GEODESICS, _DATASETS):
+        c.clear()
+
+
+# --------------------------------------------------------------------------------------------
+# the per-pair task
+# --------------------------------------------------------------------------------------------
+def _to_np(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _summary(err: np.ndarray) -> dict[str, float]:
+    from .evaluate import summarize
+
+    return summarize(err)
+
+
+def evaluate_pair(
+    pair: Any,
+    options: Mapping[str, Any] | None = None,
+    *,
+    task: str = "match",
+    prepare: Mapping[str, Any] | None = None,
+    eval_points: int | None = None,
+    distortion: bool = False,
+    keep_map: bool = False,
+) -> dict[str, Any]:
+    """Match one pair and evaluate the map: a pure function of its arguments.
+
+    Parameters
+    ----------
+    pair : torchheat.datasets.Pair
+        Must carry ground truth (``gt_src``, ``gt_tgt``).
+    options : mapping, optional
+        Keyword arguments of :func:`torchheat.match` (``task="match"``) or
+        :func:`torchheat.symmetry` (``task="symmetry"``).
+    task : {"match", "symmetry"}
+        ``"symmetry"``: the map is ``symmetry(pair.source.mesh).map``, judged against
+        ``pair.gt_tgt`` (the self-symmetry gt of :func:`~torchheat.datasets.\
+tosca_remeshed_5k_symmetry`).
+    prepare : mapping, optional
+        Keyword arguments of :func:`torchheat.prepare` (e.g. ``k``) for ``task="match"``.
+    eval_points : int, optional
+        Evaluate on this many evenly spaced ground-truth rows only (quick runs).
+    distortion : bool
+        Also compute :func:`torchheat.evaluate.geodesic_distortion` (100 FPS samples).
+    keep_map : bool
+        Add ``"_arrays": {"map", "gt_src", "errors"}`` (numpy) for pictures; not JSON-able.
+
+    Returns
+    -------
+    dict
+        ``name, cls, source, target, task, n_source, n_target, n_eval``;
+        ``time_prepare`` (s, preparing the shapes — 0 when memoised), ``time_match`` (s, the
+        :func:`~torchheat.match` call), ``time_eval`` (s), ``timings`` (the matcher's stages);
+        ``direct``: :func:`~torchheat.evaluate.summarize` of the errors against the direct
+        gt (``mean, under_0.25, under_0.1, under_0.05, exact``); ``flip``: the same for the
+        flip-aware error (direct or symmetric gt, chosen for the map as a whole) or ``None``
+        without symmetric gt; ``flip_choice``: ``"direct"``, ``"symmetric"`` or ``None``;
+        ``curve`` / ``flip_curve``: fractions at :data:`CURVE_THRESHOLDS`;
+        ``curve_thresholds``; ``landmark`` (first pair) and ``landmarks``; ``orientation``
+        (score of the returned map, NaN -> ``None``); ``distortion`` (float or ``None``).
+
+    Examples
+    --------
+    >>> from torchheat import datasets
+    >>> pair = datasets.tosca_remeshed_5k(classes=["wolf"])[0]  # doctest: +SKIP
+    >>> r = evaluate_pair(pair, {"method": "paper"}, prepare={"k": 30})  # doctest: +SKIP
+    >>> sorted(r["direct"])  # doctest: +SKIP
+    ['exact', 'mean', 'under_0.05', 'under_0.1', 'under_0.25']
+    """
+    from .evaluate import cumulative_curve, geodesic_distortion
+    from .matching import match, symmetry
+
+    opts = dict(options or {})
+    if pair.gt_src is None or pair.gt_tgt is None:
+        raise ValueError(f"pair {pair.name} has no ground truth")
+    t0 = time.perf_counter()
+    time_prepare = 0.0
+    if task == "match":
+        src = _prepared(pair.source, "source", opts, prepare or {})
+        tgt = _prepared(pair.target, "target", opts, prepare or {})
+        time_prepare = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        corr = match(src, tgt, **opts)
+    elif task == "symmetry":
+        t1 = time.perf_counter()
+        corr = symmetry(pair.source.mesh, **opts)
+    else:
+        raise ValueError(f"unknown task {task!r}; use 'match' or 'symmetry'")
+    time_match = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    fmap = _to_np(corr.map).astype(np.int64)
+    gs = _to_np(pair.gt_src).astype(np.int64)
+    gt = _to_np(pair.gt_tgt).astype(np.int64)
+    gsym = None if pair.gt_sym_tgt is None else _to_np(pair.gt_sym_tgt).astype(np.int64)
+    if eval_points is not None and eval_points < len(gs):
+        rows = np.unique(np.linspace(0, len(gs) - 1, int(eval_points)).round().astype(np.int64))
+        gs, gt = gs[rows], gt[rows]
+        gsym = None if gsym is None else gsym[rows]
+    pred = fmap[gs]
+    geo = _geodesics(pair.target)
+    errs = geo.errors(pred, [gt] if gsym is None else [gt, gsym])
+    direct = errs[0]
+    flip_err, choice = None, None
+    if gsym is not None:
+        # as torchheat.evaluate.flip_aware_errors: the whole map, ties go to "direct"
+        flip_err, choice = (errs[1], "symmetric") if errs[1].mean() < direct.mean() else (
+            direct, "direct")
+    thr = np.asarray(CURVE_THRESHOLDS)
+    dist = None
+    if distortion:
+        dist = geodesic_distortion(pair.source.mesh, pair.target.mesh, fmap,
+                                   solver_src=_geodesics(pair.source).solver,
+                                   solver_tgt=geo.solver)
+    time_eval = time.perf_counter() - t2
+    orient = float(corr.orientation)
+    rec: dict[str, Any] = {
+        "name": pair.name,
+        "cls": pair.cls,
+        "source": pair.source.name,
+        "target": pair.target.name,
+        "task": task,
+        "n_source": int(pair.source.mesh.n_vertices),
+        "n_target": int(pair.target.mesh.n_vertices),
+        "n_eval": len(gs),
+        "time_prepare": time_prepare,
+        "time_match": time_match,
+        "time_eval": time_eval,
+        "timings": {k: float(v) for k, v in corr.info.get("timings", {}).items()},
+        "direct": _summary(direct),
+        "flip": None if flip_err is None else _summary(flip_err),
+        "flip_choice": choice,
+        "curve_thresholds": list(CURVE_THRESHOLDS),
+        "curve": cumulative_curve(direct, thresholds=thr)[1].tolist(),
+        "flip_curve": None if flip_err is None
+        else cumulative_curve(flip_err, thresholds=thr)[1].tolist(),
+        "landmark": [int(v) for v in corr.landmarks[0]] if corr.landmarks else None,
+        "landmarks": [[int(a), int(b)] for a, b in corr.landmarks],
+        "orientation": None if math.isnan(orient) else orient,
+        "distortion": dist,
+    }
+    if keep_map:
+        rec["_arrays"] = {"map": fmap, "gt_src": gs,
+                          "errors": direct if flip_err is None else flip_err}
+    return rec
+
+
+# --------------------------------------------------------------------------------------------
+# tasks shipped to executors
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PairTask:
+    """A picklable unit of work: which pair of which dataset, and how to evaluate it."""
+
+    dataset: str
+    dataset_args: tuple[tuple[str, Any], ...]
+    index: int
+    name: str
+    key: str
+    options_hash: str
+    task: str
+    match: tuple[tuple[str, Any], ...]
+    prepare: tuple[tuple[str, Any], ...]
+    eval_points: int | None
+    distortion: bool
+    keep_map: bool
+
+
+def _freeze(d: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
+    return tuple(sorted((str(k), v) for k, v in d.items()))
+
+
+def _load_dataset(dataset: str, args: Mapping[str, Any]) -> Any:
+    from . import datasets
+
+    def make() -> Any:
+        kw = dict(args)
+        if dataset == "folder":
+            pairs = kw.pop("pairs", None)
+            gt = kw.pop("gt", "identity")
+            if not pairs:
+                raise ConfigError("dataset 'folder' needs dataset_args.pairs: [[a, b], ...]")
+            shapes = datasets.folder(kw.pop("path"), **kw)
+            return datasets.pairs_from_list(shapes, [tuple(p) for p in pairs], gt=gt)
+        loader = getattr(datasets, dataset)
+        try:
+            return loader(**kw)
+        except TypeError as exc:
+            raise ConfigError(f"dataset_args for {dataset}: {exc}") from None
+
+    return _DATASETS.get_or((dataset, json.dumps(dict(args), sort_keys=True, default=str)), make)
+
+
+def _run_task(task: PairTask) -> dict[str, Any]:
+    """Executor entry point: load the pair, evaluate it; exceptions become error records."""
+    try:
+        pc = _load_dataset(task.dataset, dict(task.dataset_args))
+        pair = pc[task.index]
+        if pair.name != task.name:
+            raise RuntimeError(f"pair {task.index} is {pair.name}, expected {task.name}")
+        rec = evaluate_pair(pair, dict(task.match), task=task.task, prepare=dict(task.prepare),
+                            eval_points=task.eval_points, distortion=task.distortion,
+                            keep_map=task.keep_map)
+    except Exception as exc:  # noqa: BLE001 - reported by run(), the run goes on
+        last = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        return {"key": task.key, "name": task.name, "error": last}
+    rec = {"key": task.key, "options_hash": task.options_hash, **rec}
+    return rec
+
+
+def _worker_init() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    warnings.filterwarnings("ignore", category=UserWarning, module="torchheat.operators")
+
+
+# --------------------------------------------------------------------------------------------
+# results file
+# --------------------------------------------------------------------------------------------
+def load_results(path: str | os.PathLike, repair: bool = True) -> list[dict[str, Any]]:
+    """Read ``results.jsonl``; a trailing partial line (killed mid-write) is ignored and, with
+    ``repair``, cut off the file. Lines that are not valid JSON are skipped with a warning.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "r.jsonl"
+    >>> _ = p.write_text('{"key": "a"}\\n{"key": "b", "x"')
+    >>> [r["key"] for r in load_results(p)], p.read_text()
+    (['a'], '{"key": "a"}\\n')
+    """
+    p = Path(path)
+    if not p.is_file():
+        return []
+    data = p.read_bytes()
+    end = data.rfind(b"\n") + 1  # 0 when there is no complete line
+    if end < len(data) and repair:
+        with open(p, "r+b") as f:
+            f.truncate(end)
+            f.flush()
+            os.fsync(f.fileno())
+    out = []
+    for i, line in enumerate(data[:end].split(b"\n")):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            warnings.warn(f"{p}: skipping unreadable line {i + 1}", stacklevel=2)
+            continue
+        if isinstance(rec, dict) and "key" in rec:
+            out.append(rec)
+    return out
+
+
+def _append_line(path: Path, rec: Mapping[str, Any]) -> None:
+    line = (json.dumps(rec, allow_nan=False, default=_json_default) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        view = memoryview(line)
+        while view:
+            n = os.write(fd, view)
+            view = view[n:]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write(tmp)`` to a temporary file next to ``path``, fsync, then ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _write_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda t: t.write_text(text))
+
+
+@contextlib.contextmanager
+def _lock(output: Path) -> Iterator[None]:
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(output / ".lock", os.O_WRONLY | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise RuntimeError(f"another run is writing to {output} (lock held)") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+# --------------------------------------------------------------------------------------------
+# run
+# --------------------------------------------------------------------------------------------
+def _in_completion_order(executor: Any, fn: Callable, tasks: list) -> Iterator[dict]:
+    if executor is None:
+        yield from builtins.map(fn, tasks)
+    elif isinstance(executor, cf.Executor):
+        futures = [executor.submit(fn, t) for t in tasks]
+        try:
+            for fut in cf.as_completed(futures):
+                yield fut.result()
+        finally:
+            for fut in futures:
+                fut.cancel()
+    else:
+        yield from executor.map(fn, tasks)
+
+
+def _tasks(cfg: Mapping[str, Any]) -> list[PairTask]:
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])
+    names = pc.names
+    n = len(names) if cfg["limit"] is None else min(len(names), int(cfg["limit"]))
+    h = options_hash(cfg)
+    return [
+        PairTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i, names[i], f"{names[i]}#{h}",
+                 h, cfg["task"], _freeze(cfg["match"]), _freeze(cfg["prepare"]),
+                 cfg["eval_points"], bool(cfg["distortion"]), i < int(cfg["pictures"]))
+        for i in range(n)
+    ]
+
+
+def _target_of(task: PairTask) -> str:
+    pc = _DATASETS.get((task.dataset, json.dumps(dict(task.dataset_args), sort_keys=True,
+                                                  default=str)))
+    if pc is None:
+        return task.name
+    return pc.shapes.names[pc.pairs[task.index][1]]
+
+
+def run(
+    config: str | os.PathLike | Mapping[str, Any],
+    workers: int = 1,
+    executor: Executor | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Evaluate every pair of a config, appending to ``<output>/results.jsonl``; resumable.
+
+    Parameters
+    ----------
+    config : path-like or mapping
+        See :func:`load_config` (a mapping may override e.g. ``output`` or ``limit``).
+    workers : int
+        ``> 1``: a local :class:`~concurrent.futures.ProcessPoolExecutor` with that many
+        processes (one torch thread each). Ignored when ``executor`` is given.
+    executor : object with ``map(fn, iterable)``, optional
+        Any executor; a :class:`concurrent.futures.Executor` is driven through ``submit`` so
+        records are written as they finish. See the module docstring for a Dask adapter.
+    progress : bool
+        tqdm progress bar on stderr.
+
+    Returns
+    -------
+    list of dict
+        The records of this config's pairs (dataset order), old and new; failed pairs are
+        reported on stderr and left out (a re-run retries them).
+
+    Examples
+    --------
+    >>> results = run("configs/smoke.yaml", progress=False)  # doctest: +SKIP
+    >>> len(results)  # doctest: +SKIP
+    3
+    """
+    from tqdm import tqdm
+
+    cfg = load_config(config)
+    out = Path(cfg["output"])
+    out.mkdir(parents=True, exist_ok=True)
+    failed: list[dict[str, Any]] = []
+    with _lock(out):
+        import yaml
+
+        _write_text(out / "config.yaml", yaml.safe_dump(cfg, sort_keys=False))
+        tasks = _tasks(cfg)
+        path = out / RESULTS
+        by_key = {r["key"]: r for r in load_results(path)}
+        todo = [t for t in tasks if t.key not in by_key]
+        todo.sort(key=_target_of)  # stable: consecutive pairs share the target's fields
+        own_pool = None
+        if executor is None and workers > 1 and len(todo) > 1:
+            own_pool = cf.ProcessPoolExecutor(max_workers=int(workers),
+                                              initializer=_worker_init)
+            executor = own_pool
+        bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), file=sys.stderr,
+                   disable=not progress, desc=cfg["name"], unit="pair", dynamic_ncols=True)
+        try:
+            for rec in _in_completion_order(executor, _run_task, todo):
+                if "error" in rec:
+                    failed.append(rec)
+                    tqdm.write(f"{rec['name']}: failed: {rec['error']}", file=sys.stderr)
+                    bar.update(1)
+                    continue
+                arrays = rec.pop("_arrays", None)
+                if arrays is not None:
+                    _atomic_write(out / "maps" / f"{rec['name']}.npz",
+                                  lambda t, a=arrays: np.savez(t, **a))
+                if rec["key"] in by_key:  # an executor delivered a pair twice
+                    continue
+                _append_line(path, rec)
+                by_key[rec["key"]] = rec
+                bar.update(1)
+                d = rec["direct"]
+                bar.set_postfix_str(f"{rec['name']} <0.25: {100 * d['under_0.25']:.0f}%")
+        finally:
+            bar.close()
+            if own_pool is not None:
+                own_pool.shutdown(wait=True, cancel_futures=True)
+        results = [by_key[t.key] for t in tasks if t.key in by_key]
+        if results:
+            summarize_run(results, out, config=cfg)
+    if failed:
+        print(f"{len(failed)} of {len(tasks)} pairs failed (re-run to retry)", file=sys.stderr)
+    return results
+
+
+# --------------------------------------------------------------------------------------------
+# summary
+# --------------------------------------------------------------------------------------------
+_COLUMNS = ("level", "name", "pairs", "mean_error", "pct_under_0.25", "pct_under_0.1",
+            "pct_under_0.05", "flip_pct_under_0.25", "flip_mean_error", "symmetric_choices",
+            "time_match_s", "time_eval_s", "time_per_pair_s", "distortion")
+
+
+def _nanmean(vals: Sequence[float | None]) -> float | None:
+    v = [float(x) for x in vals if x is not None and not math.isnan(float(x))]
+    return float(np.mean(v)) if v else None
+
+
+def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    def d(key: str, scale: float = 1.0, sub: str = "direct") -> float | None:
+        m = _nanmean([None if r.get(sub) is None else r[sub][key] for r in recs])
+        return None if m is None else m * scale
+
+    flips = [r for r in recs if r.get("flip") is not None]
+    return {
+        "level": level,
+        "name": name,
+        "pairs": len(recs),
+        "mean_error": d("mean"),
+        "pct_under_0.25": d("under_0.25", 100),
+        "pct_under_0.1": d("under_0.1", 100),
+        "pct_under_0.05": d("under_0.05", 100),
+        "flip_pct_under_0.25": d("under_0.25", 100, "flip"),
+        "flip_mean_error": d("mean", 1.0, "flip"),
+        "symmetric_choices": sum(r.get("flip_choice") == "symmetric" for r in flips)
+        if flips else None,
+        "time_match_s": _nanmean([r.get("time_prepare", 0.0) + r["time_match"] for r in recs]),
+        "time_eval_s": _nanmean([r["time_eval"] for r in recs]),
+        "time_per_pair_s": _nanmean([r.get("time_prepare", 0.0) + r["time_match"]
+                                     + r["time_eval"] for r in recs]),
+        "distortion": _nanmean([r.get("distortion") for r in recs]),
+    }
+
+
+def _table_rows(results: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    rows = [_row("overall", "all", results)]
+    classes: dict[str, list] = {}
+    for r in results:
+        classes.setdefault(r["cls"], []).append(r)
+    rows += [_row("class", c, rs) for c, rs in classes.items()]
+    rows += [_row("pair", r["name"], [r]) for r in results]
+    return rows
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def _markdown(rows: list[dict[str, Any]], title: str) -> str:
+    head = ["name", "pairs", "mean err", "% <0.25", "% <0.1", "% <0.05", "flip % <0.25",
+            "sym. chosen", "match s", "eval s", "s / pair"]
+    keys = ["name", "pairs", "mean_error", "pct_under_0.25", "pct_under_0.1", "pct_under_0.05",
+            "flip_pct_under_0.25", "symmetric_choices", "time_match_s", "time_eval_s",
+            "time_per_pair_s"]
+    digits = {"mean_error": 4, "pct_under_0.25": 1, "pct_under_0.1": 1, "pct_under_0.05": 1,
+              "flip_pct_under_0.25": 1, "time_match_s": 2, "time_eval_s": 2,
+              "time_per_pair_s": 2}
+    if any(r["distortion"] is not None for r in rows):
+        head.append("distortion")
+        keys.append("distortion")
+        digits["distortion"] = 4
+    lines = [f"# {title}", "",
+             "Errors: geodesic distance to the ground truth / sqrt(target area) (Kim et al. "
+             "2011), averaged per pair, then over pairs (every pair weighs the same). "
+             "Flip-aware: the direct or the symmetric ground truth, whichever fits the whole "
+             "map better. Times: prepare + match, evaluation.", ""]
+    for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
+        sel = [r for r in rows if r["level"] == level]
+        if not sel:
+            continue
+        lines += [f"## {label}", "", "| " + " | ".join(head) + " |",
+                  "|" + "---|" * len(head)]
+        for r in sel:
+            lines.append("| " + " | ".join(_fmt(r[k], digits.get(k, 3)) for k in keys) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _mean_curves(results: Sequence[Mapping[str, Any]]) -> dict[str, tuple]:
+    curves: dict[str, tuple] = {}
+    for key, label in (("curve", "direct"), ("flip_curve", "flip-aware")):
+        cs = [(r["curve_thresholds"], r[key]) for r in results if r.get(key) is not None]
+        cs = [c for c in cs if list(c[0]) == list(cs[0][0])] if cs else []
+        if cs:
+            curves[f"{label} ({len(cs)} pairs)"] = (
+                np.asarray(cs[0][0]), np.mean([np.asarray(c[1]) for c in cs], axis=0))
+    return curves
+
+
+def summarize_run(
+    results: Sequence[Mapping[str, Any]],
+    output: str | os.PathLike,
+    config: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``summary.md``, ``summary.csv``, ``curves.png`` (and pictures) for a run.
+
+    Parameters
+    ----------
+    results : sequence of dict
+        Records of :func:`evaluate_pair` / ``results.jsonl``.
+    output : path-like
+        Folder to write into (created).
+    config : mapping, optional
+        The run config; with ``pictures > 0`` and :mod:`torchheat.viz` available, colour
+        transfer PNGs of the first pairs whose maps were saved (``maps/<name>.npz``) are written
+        to ``pictures/``.
+
+    Returns
+    -------
+    dict
+        The overall row (``mean_error``, ``pct_under_0.25``, ..., ``time_per_pair_s``).
+
+    Notes
+    -----
+    Per-class and overall figures are means over pairs of the per-pair figures. Percentages
+    are 0-100. The CSV holds one row per level (``overall``, ``class``, ``pair``). All files
+    are written atomically (temporary file + :func:`os.replace`).
+
+    Examples
+    --------
+    >>> from torchheat.batch import load_results
+    >>> summarize_run(load_results("out/smoke/results.jsonl"), "out/smoke")  # doctest: +SKIP
+    """
+    from .evaluate import plot_cumulative
+
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    if not results:
+        raise ValueError("no results to summarize")
+    rows = _table_rows(results)
+    title = (config or {}).get("name") or out.name
+    _write_text(out / "summary.md", _markdown(rows, f"{title}: {len(results)} pairs"))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(_COLUMNS), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: "" if r[k] is None else r[k] for k in _COLUMNS})
+    _write_text(out / "summary.csv", buf.getvalue())
+    curves = _mean_curves(results)
+    if curves:
+        _atomic_write(out / "curves.png",
+                      lambda t: plot_cumulative(curves, t, title=f"{title}: mean cumulative "
+                                                f"error ({len(results)} pairs)"))
+    if config is not None and int(config.get("pictures", 0)) > 0:
+        _pictures(results, out, config)
+    return rows[0]
+
+
+def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str, Any]) -> None:
+    try:
+        from . import viz
+    except ImportError:
+        return
+    color_transfer = getattr(viz, "color_transfer", None)
+    if color_transfer is None:
+        return
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])
+    index = {n: i for i, n in enumerate(pc.names)}
+    for rec in results[: int(cfg["pictures"])]:
+        png = out / "pictures" / f"{rec['name']}.png"
+        maps = out / "maps" / f"{rec['name']}.npz"
+        if png.exists() or not maps.is_file() or rec["name"] not in index:
+            continue
+        try:
+            with np.load(maps) as z:
+                fmap = z["map"]
+            pair = pc[index[rec["name"]]]
+            d = rec["direct"] if rec.get("flip") is None else rec["flip"]
+            title = f"{rec['name']}: {100 * d['under_0.25']:.0f}% < 0.25"
+            _atomic_write(png, lambda t, p=pair, f=fmap, ti=title: color_transfer(
+                p.source.mesh, p.target.mesh, f, t, title=ti))
+        except Exception as exc:  # noqa: BLE001 - pictures are optional
+            warnings.warn(f"picture for {rec['name']} failed: {exc}", stacklevel=2)
+
+
+# --------------------------------------------------------------------------------------------
+# command line
+# --------------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``evaluate CONFIG [--workers N] [--limit N] [--output DIR]
+    [--no-progress]``.
+
+    Returns 0 on success, 1 if some pairs failed, 2 on a configuration error.
+
+    Examples
+    --------
+    >>> main(["configs/smoke.yaml", "--no-progress"])  # doctest: +SKIP
+    0
+    """
+    ap = argparse.ArgumentParser(
+        prog="torchheat evaluate",
+        description="Batch evaluation of torchheat matching over a dataset (resumable).",
+    )
+    ap.add_argument("config", help="YAML run configuration (see configs/)")
+    ap.add_argument("--workers", type=int, default=1, help="local worker processes")
+    ap.add_argument("--limit", type=int, default=None, help="only the first N pairs")
+    ap.add_argument("--output", default=None, help="output folder (default out/<name>)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore", message="Sparse", category=UserWarning)
+    try:
+        cfg = load_config(args.config)
+        if args.limit is not None:
+            if args.limit < 1:
+                raise ConfigError("--limit must be >= 1")
+            cfg["limit"] = args.limit
+        if args.output is not None:
+            cfg["output"] = args.output
+        if args.workers < 1:
+            raise ConfigError("--workers must be >= 1")
+        t0 = time.perf_counter()
+        results = run(cfg, workers=args.workers, progress=not args.no_progress)
+    except (ConfigError, FileNotFoundError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if not results:
+        print("error: no pair finished", file=sys.stderr)
+        return 1
+    row = _table_rows(results)[0]
+    print(f"{cfg['name']}: {len(results)} pairs, mean error {row['mean_error']:.4f}, "
+          f"{row['pct_under_0.25']:.1f}% < 0.25"
+          + ("" if row["flip_pct_under_0.25"] is None
+             else f" (flip-aware {row['flip_pct_under_0.25']:.1f}%)")
+          + f", {row['time_per_pair_s']:.1f} s/pair; wall {time.perf_counter() - t0:.0f} s "
+          f"-> {cfg['output']}/summary.md")
+    n_tasks = len(_tasks(cfg))
+    return 0 if len(results) == n_tasks else 1
