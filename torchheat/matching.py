@@ -561,6 +561,30 @@ def _sample_map(src, tgt, lms, rows, use_hks, engine) -> tuple[torch.Tensor, tor
 _REFINE_TIMES = slice(1, None, 2)  # every other time sample: half the dimensions, same span
 
 
+def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest neighbour in L2 by blocked GEMM, ``argmin_y |y|^2 - 2 x.y`` (float32).
+
+    The refinement descriptors have hundreds of dimensions, where k-d trees are no faster
+    than brute force; one float32 GEMM per block is the fastest exact-up-to-rounding search.
+    Returns squared distances and indices.
+    """
+    Xf = X.float()
+    Yf = Y.float()
+    yy = (Yf * Yf).sum(dim=1)
+    xx = (Xf * Xf).sum(dim=1)
+    m = Yf.shape[0]
+    rows = max(1, int(memory_bytes // max(1, 4 * m)))
+    best_d = torch.empty(Xf.shape[0], dtype=torch.float32, device=X.device)
+    best_i = torch.empty(Xf.shape[0], dtype=torch.int64, device=X.device)
+    for r0 in range(0, Xf.shape[0], rows):
+        G = torch.addmm(yy[None, :], Xf[r0 : r0 + rows], Yf.T, alpha=-2.0)
+        d, i = G.min(dim=1)
+        best_d[r0 : r0 + rows] = (d + xx[r0 : r0 + rows]).clamp_min(0)
+        best_i[r0 : r0 + rows] = i
+    return best_d, best_i
+
+
 def _augment(src, tgt, samples, g, rows, iterations, Dp_full):
     """Correspondence augmentation on samples: landmarks ``samples -> g``; NN in L2 of the
     multi-landmark heat kernel map for the source vertices ``rows`` (all when None)."""
@@ -570,8 +594,8 @@ def _augment(src, tgt, samples, g, rows, iterations, Dp_full):
         Dq = heat_kernel_map(tgt.hk, g, time_index=_REFINE_TIMES)
         Dp = Dp_full[samples] if (rows is None and it < iterations - 1) else (
             Dp_full if rows is None else Dp_full[rows])
-        d, idx = nearest_neighbors(Dp, Dq, p=2.0, engine="cdist")
-        energy = float((d.double() ** 2).mean())
+        d2, idx = _nn_l2(Dp, Dq)
+        energy = float(d2.double().mean())
         if rows is None and it < iterations - 1:
             g = idx
         elif rows is None:
@@ -642,7 +666,10 @@ def match(
     orientation: bool = True,
     max_features: int = 50,
     score_samples: int | None = 1000,
+    mirror_hypothesis: bool = True,
+    mirror_energy_ratio: float = 3.0,
     num_threads: int | None = None,
+    final_map: bool = True,
 ) -> Correspondence:
     """Dense correspondence between two near-isometric shapes from one point.
 
@@ -682,6 +709,14 @@ def match(
     score_samples : int or None
         Source vertices (farthest-point samples) the landmark score ``E(p, q)`` sums over
         (default 1000; None: all, as in the paper).
+    mirror_hypothesis : bool
+        (``method="refine"``) Also refine the mirror partner of the best hypothesis, built
+        from the target's intrinsic symmetry (computed once per prepared target and cached),
+        so that the orientation test chooses between the direct and the symmetric map even
+        when only one of them was reached from the landmark candidates.
+    mirror_energy_ratio : float
+        The mirror partner is used only if its refined energy is at most this multiple of
+        the best hypothesis' energy (otherwise the symmetry estimate was poor).
     num_threads : int, optional
         torch threads.
 
@@ -797,7 +832,28 @@ def match(
             timings["hypotheses"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             by_energy = sorted(results, key=lambda r: r["energy"])
-            if orientation:
+            best = by_energy[0]
+            # The best refined hypothesis is a good map, but it may be the mirror one: the
+            # true image of a limb-tip landmark and its mirror tip score alike. Its mirror
+            # partner sigma_N o f (sigma_N: the target's intrinsic symmetry, at the sample
+            # images only) is the other hypothesis; the orientation test tells them apart.
+            mirror = None
+            if mirror_hypothesis and tgt is not src:
+                sig = _symmetry_at(tgt, best["g"], use_hks, engine, n_candidates)
+                if sig is not None:
+                    f_rows, g2, e2 = _augment(src, tgt, samples, sig, rows, refine_iterations,
+                                              Dp_full)
+                    o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
+                    mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
+                    hypotheses.append((["mirror of best"], e2, o2))
+            if mirror is not None and mirror["energy"] > mirror_energy_ratio * best["energy"]:
+                mirror = None  # the target's symmetry was not found well enough: no partner
+            if mirror is not None:
+                pair = [best, mirror]
+                if orientation:
+                    pair.sort(key=lambda r: -r["orientation"])
+                direct, sym = pair
+            elif orientation:
                 pos_r = [r for r in by_energy if r["orientation"] > 0]
                 neg_r = [r for r in by_energy if r["orientation"] <= 0]
                 direct = pos_r[0] if pos_r else by_energy[0]
@@ -808,8 +864,11 @@ def match(
             for r in (direct, sym):
                 if r is None:
                     continue
-                r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
-                                                    Dp_full)
+                if final_map:
+                    r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
+                                                        Dp_full)
+                else:  # internal use (self-symmetry on samples): no dense map
+                    r["map"] = None
                 r["landmarks"] = list(r["lms0"]) + [
                     (int(a), int(b)) for a, b in zip(samples.tolist(), r["g"].tolist(),
                                                      strict=True)
@@ -825,8 +884,42 @@ def match(
         symmetric_map=None if sym is None else sym["map"],
         symmetric_landmarks=None if sym is None else sym["landmarks"],
         orientation=orient,
-        info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses},
+        info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
+              "sym_orientation": None if sym is None else sym.get("orientation"),
+              "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks"))},
     )
+
+
+def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int
+                   ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The shape's intrinsic (orientation-reversing) self-symmetry on farthest-point samples.
+
+    Returns ``(samples, images)`` or None when no orientation-reversing self-map is found.
+    Cached on the PreparedShape (per time samples).
+    """
+    key = tuple(shape.hk.times.tolist())
+    cache = shape.__dict__.setdefault("_sym_cache", {})
+    if key in cache:
+        return cache[key]
+    corr = match(shape, shape, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
+                 mirror_hypothesis=False, final_map=False)
+    out = None
+    if corr.symmetric_landmarks is not None and corr.info.get("sym_orientation", 0) < 0:
+        lm = corr.symmetric_landmarks[len(corr.info["lms0_sym"]):]
+        out = (torch.tensor([a for a, _ in lm]), torch.tensor([b for _, b in lm]))
+    cache[key] = out
+    return out
+
+
+def _symmetry_at(shape, vertices, use_hks, engine, n_candidates) -> torch.Tensor | None:
+    """Images of ``vertices`` under the shape's intrinsic symmetry (None if none found)."""
+    sym = _self_symmetry(shape, use_hks, engine, n_candidates)
+    if sym is None:
+        return None
+    S, G = sym
+    Dp = heat_kernel_map(shape.hk, S, time_index=_REFINE_TIMES)[vertices]
+    Dq = heat_kernel_map(shape.hk, G, time_index=_REFINE_TIMES)
+    return _nn_l2(Dp, Dq)[1]
 
 
 def _greedy_landmarks(src, tgt, lms, total, use_hks, engine):
