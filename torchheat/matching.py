@@ -715,8 +715,9 @@ def match(
         so that the orientation test chooses between the direct and the symmetric map even
         when only one of them was reached from the landmark candidates.
     mirror_energy_ratio : float
-        The mirror partner is used only if its refined energy is at most this multiple of
-        the best hypothesis' energy (otherwise the symmetry estimate was poor).
+        Hypotheses (the mirror partner included) compete in the orientation test only if
+        their refined energy is at most this multiple of the best one's; the others did not
+        converge to a clean map.
     num_threads : int, optional
         torch threads.
 
@@ -846,21 +847,20 @@ def match(
                     o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                     mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
                     hypotheses.append((["mirror of best"], e2, o2))
-            if mirror is not None and mirror["energy"] > mirror_energy_ratio * best["energy"]:
-                mirror = None  # the target's symmetry was not found well enough: no partner
-            if mirror is not None:
-                pair = [best, mirror]
-                if orientation:
-                    pair.sort(key=lambda r: -r["orientation"])
-                direct, sym = pair
-            elif orientation:
-                pos_r = [r for r in by_energy if r["orientation"] > 0]
-                neg_r = [r for r in by_energy if r["orientation"] <= 0]
-                direct = pos_r[0] if pos_r else by_energy[0]
-                sym = neg_r[0] if neg_r else None
+            # Only good maps compete (energy within `mirror_energy_ratio` of the best): a
+            # refined hypothesis that did not converge is a mixture, whose orientation score
+            # says nothing. Among the good ones the orientation test picks the direct map
+            # (most orientation-preserving) and the symmetric one (most reversing).
+            pool_r = by_energy + ([mirror] if mirror is not None else [])
+            good = [r for r in pool_r if r["energy"] <= mirror_energy_ratio * best["energy"]]
+            if orientation:
+                direct = max(good, key=lambda r: r["orientation"])
+                rev = [r for r in good if r is not direct and r["orientation"] < 0]
+                sym = min(rev, key=lambda r: r["orientation"]) if rev else None
             else:
-                direct = by_energy[0]
-                sym = by_energy[1] if len(by_energy) > 1 else None
+                direct = best
+                rest = [r for r in pool_r if r is not best]
+                sym = min(rest, key=lambda r: r["energy"]) if rest else None
             for r in (direct, sym):
                 if r is None:
                     continue
