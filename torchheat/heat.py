@@ -425,6 +425,14 @@ class HeatKernel:
         lam = np.maximum(lam, 0.0)
         return lam, phi
 
+    def _phi_torch(self, dt: torch.dtype, dev: torch.device) -> torch.Tensor:
+        key = (dt, dev)
+        cache = self.__dict__.setdefault("_phi_cache", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = torch.as_tensor(self._phi_red, dtype=dt, device=dev).contiguous()
+        return cache[key]
+
     def _spectral_eta(self) -> np.ndarray:
         """Operator-norm truncation bound of the eigenbasis per time, shape (J,)."""
         t = self.times.numpy()
@@ -634,6 +642,17 @@ class HeatKernel:
         B, J = src.size, self.times.numel()
         m = self._idx.size
         dev, dt = self.device, self.dtype
+        if (self._plan.spectral.all() and not certify and bool(live.all()) and m == self.n
+                and B > 0):
+            # fast path (descriptors): one GEMM, phi [n, k] x (phi[p] e^{-t lam}) [k, B J]
+            self.error_bound = None
+            with threads(self.num_threads):
+                phi = self._phi_torch(dt, dev)
+                E = torch.exp(-self.times.to(dt).to(dev)[None, :]
+                              * torch.as_tensor(self._lam, dtype=dt, device=dev)[:, None])
+                coeff = phi[torch.as_tensor(red, device=dev)].T[:, :, None] * E[:, None, :]
+                out = (phi @ coeff.reshape(phi.shape[1], B * J)).reshape(m, B, J)
+            return out.permute(1, 0, 2)
         red_live = red[live]
         Bl = red_live.size
         colr = torch.zeros((m, Bl, J), dtype=dt, device=dev)
@@ -642,7 +661,7 @@ class HeatKernel:
         t_all = self.times.numpy()
         with threads(self.num_threads):
             if spectral.any() and Bl:
-                phi = torch.as_tensor(self._phi_red, dtype=dt, device=dev)
+                phi = self._phi_torch(dt, dev)
                 lam = torch.as_tensor(self._lam, dtype=dt, device=dev)
                 ts = torch.as_tensor(t_all[spectral], dtype=dt, device=dev)
                 E = torch.exp(-ts[None, :] * lam[:, None])  # [k, Js]
@@ -746,6 +765,7 @@ class HeatKernel:
         """
         if self._lam.size == 0:
             self._lam, self._phi_red = self._eigensolve(self.k)
+            self.__dict__.pop("_phi_cache", None)
         t = self.times.numpy()
         E = np.exp(-t[None, :] * self._lam[:, None])  # [k, J]
         h = (self._phi_red**2) @ E  # [m, J]
