@@ -561,6 +561,23 @@ def _sample_map(src, tgt, lms, rows, use_hks, engine) -> tuple[torch.Tensor, tor
 _REFINE_TIMES = slice(1, None, 2)  # every other time sample: half the dimensions, same span
 
 
+def _refine_descriptor(shape: PreparedShape, landmarks, log_floor: float | None = None
+                       ) -> torch.Tensor:
+    """Multi-landmark descriptor of the refinement.
+
+    With ``log_floor`` the heat kernel is taken in log scale, ``log max(k_t, floor)``: by
+    Varadhan's formula ``-4 t log k_t(s, x) -> d(s, x)^2``, so each coordinate behaves like a
+    geodesic distance to a landmark instead of vanishing away from it.
+    """
+    D = heat_kernel_map(shape.hk, landmarks, time_index=_REFINE_TIMES)
+    if log_floor is None:
+        return D
+    t = shape.hk.times[_REFINE_TIMES].to(D.dtype)
+    L = D.shape[1] // t.numel()
+    k = D / t.repeat(L)  # undo the t-scaling
+    return torch.log(k.clamp_min(log_floor))
+
+
 def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20
            ) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest neighbour in L2 by blocked GEMM, ``argmin_y |y|^2 - 2 x.y`` (float32).
@@ -585,13 +602,13 @@ def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20
     return best_d, best_i
 
 
-def _augment(src, tgt, samples, g, rows, iterations, Dp_full):
+def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None):
     """Correspondence augmentation on samples: landmarks ``samples -> g``; NN in L2 of the
     multi-landmark heat kernel map for the source vertices ``rows`` (all when None)."""
     energy = math.inf
     out = None
     for it in range(iterations):
-        Dq = heat_kernel_map(tgt.hk, g, time_index=_REFINE_TIMES)
+        Dq = _refine_descriptor(tgt, g, log_floor)
         Dp = Dp_full[samples] if (rows is None and it < iterations - 1) else (
             Dp_full if rows is None else Dp_full[rows])
         d2, idx = _nn_l2(Dp, Dq)
@@ -668,6 +685,7 @@ def match(
     score_samples: int | None = 1000,
     mirror_hypothesis: bool = True,
     mirror_energy_ratio: float = 3.0,
+    refine_log_floor: float | None = None,
     num_threads: int | None = None,
     final_map: bool = True,
 ) -> Correspondence:
@@ -718,6 +736,9 @@ def match(
         Hypotheses (the mirror partner included) compete in the orientation test only if
         their refined energy is at most this multiple of the best one's; the others did not
         converge to a clean map.
+    refine_log_floor : float or None
+        Refinement descriptor: None (default) the t-scaled heat kernel map of the samples;
+        a float uses ``log max(k_t, floor)`` instead (Varadhan: distance-like coordinates).
     num_threads : int, optional
         torch threads.
 
@@ -820,13 +841,13 @@ def match(
             pos[rows] = torch.arange(rows.numel())
             hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, n_candidates)
                    for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)]
-            Dp_full = heat_kernel_map(src.hk, samples, time_index=_REFINE_TIMES)
+            Dp_full = _refine_descriptor(src, samples, refine_log_floor)
             results = []
             for lms0 in hyp:
                 g_rows, _ = _sample_map(src, tgt, lms0, rows, use_hks, engine)
                 g = g_rows[: samples.numel()]
                 f_rows, g, energy = _augment(src, tgt, samples, g, rows, refine_iterations,
-                                                 Dp_full)
+                                                 Dp_full, refine_log_floor)
                 o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                 results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
                 hypotheses.append((lms0, energy, o))
@@ -840,10 +861,11 @@ def match(
             # images only) is the other hypothesis; the orientation test tells them apart.
             mirror = None
             if mirror_hypothesis and tgt is not src:
-                sig = _symmetry_at(tgt, best["g"], use_hks, engine, n_candidates)
+                sig = _symmetry_at(tgt, best["g"], use_hks, engine, n_candidates,
+                                   refine_log_floor)
                 if sig is not None:
                     f_rows, g2, e2 = _augment(src, tgt, samples, sig, rows, refine_iterations,
-                                              Dp_full)
+                                              Dp_full, refine_log_floor)
                     o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                     mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
                     hypotheses.append((["mirror of best"], e2, o2))
@@ -866,7 +888,7 @@ def match(
                     continue
                 if final_map:
                     r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
-                                                        Dp_full)
+                                                        Dp_full, refine_log_floor)
                 else:  # internal use (self-symmetry on samples): no dense map
                     r["map"] = None
                 r["landmarks"] = list(r["lms0"]) + [
@@ -890,19 +912,19 @@ def match(
     )
 
 
-def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int
-                   ) -> tuple[torch.Tensor, torch.Tensor] | None:
+def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int,
+                   log_floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The shape's intrinsic (orientation-reversing) self-symmetry on farthest-point samples.
 
     Returns ``(samples, images)`` or None when no orientation-reversing self-map is found.
     Cached on the PreparedShape (per time samples).
     """
-    key = tuple(shape.hk.times.tolist())
+    key = (tuple(shape.hk.times.tolist()), log_floor)
     cache = shape.__dict__.setdefault("_sym_cache", {})
     if key in cache:
         return cache[key]
     corr = match(shape, shape, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
-                 mirror_hypothesis=False, final_map=False)
+                 mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor)
     out = None
     if corr.symmetric_landmarks is not None and corr.info.get("sym_orientation", 0) < 0:
         lm = corr.symmetric_landmarks[len(corr.info["lms0_sym"]):]
@@ -911,14 +933,15 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     return out
 
 
-def _symmetry_at(shape, vertices, use_hks, engine, n_candidates) -> torch.Tensor | None:
+def _symmetry_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None
+                 ) -> torch.Tensor | None:
     """Images of ``vertices`` under the shape's intrinsic symmetry (None if none found)."""
-    sym = _self_symmetry(shape, use_hks, engine, n_candidates)
+    sym = _self_symmetry(shape, use_hks, engine, n_candidates, log_floor)
     if sym is None:
         return None
     S, G = sym
-    Dp = heat_kernel_map(shape.hk, S, time_index=_REFINE_TIMES)[vertices]
-    Dq = heat_kernel_map(shape.hk, G, time_index=_REFINE_TIMES)
+    Dp = _refine_descriptor(shape, S, log_floor)[vertices]
+    Dq = _refine_descriptor(shape, G, log_floor)
     return _nn_l2(Dp, Dq)[1]
 
 
