@@ -79,9 +79,17 @@ def test_match_round_trip(pair, matched, capsys):
     assert not [p for p in os.listdir(d) if p.endswith(".tmp")]  # no temp files left
 
 
-def test_symmetric_out_written(matched):
-    _, _, sym, _ = matched
-    assert sym.exists()
+def test_symmetric_out_written(pair):
+    # the paper's pipeline always reports its next distinct candidate as the symmetric map
+    # (the default pipeline reports one only when an orientation-reversing map exists)
+    src, tgt, inv, d = pair
+    out, sym = d / "p_map.txt", d / "p_sym.txt"
+    rc = main(["match", str(src), str(tgt), "-o", str(out), "--symmetric-out", str(sym),
+               "--method", "paper", "--threads", "1"])
+    assert rc == 0 and sym.exists()
+    g = read_map(sym)
+    assert g.shape == (len(inv),) and g.min() >= 0 and g.max() < len(inv)
+    assert np.mean(g == inv) < 0.5  # a different map from the direct one
 
 
 def test_match_fixed_pair_and_paper_method(pair, capsys):
