@@ -361,8 +361,8 @@ def landmark_scores(
     --------
     >>> import trimesh
     >>> from torchheat import Mesh
-    >>> s = prepare(Mesh(*trimesh.creation.icosphere(2).to_dict()["vertices"] and
-    ...     (trimesh.creation.icosphere(2).vertices, trimesh.creation.icosphere(2).faces)))
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = prepare(Mesh(m.vertices, m.faces))
     >>> landmark_scores(s, s, 0, [0, 1]).shape
     torch.Size([2])
     """

@@ -91,7 +91,7 @@ def cotmatrix_intrinsic(lengths, F) -> torch.Tensor:
     --------
     >>> import numpy as np
     >>> W = cotmatrix_intrinsic(np.array([[1.0, 1.0, 2**0.5]]), np.array([[0, 1, 2]]))
-    >>> round(float(W.to_dense()[0, 1]), 6)
+    >>> round(float(W.to_dense()[0, 2]), 6)  # 45-degree angle opposite edge (0, 2)
     -0.5
     """
     l_ = np.asarray(lengths, dtype=np.float64)
