@@ -34,6 +34,7 @@ def heat_kernel_map(
     landmarks: Sequence[int] | torch.Tensor,
     columns: torch.Tensor | None = None,
     time_index: Sequence[int] | slice | None = None,
+    dtype: torch.dtype | None = None,
 ) -> torch.Tensor:
     """Heat Kernel Map ``Phi(x) = (t_j k_{t_j}(p_l, x))_{l, j}`` of one or more landmarks.
 
@@ -47,6 +48,9 @@ def heat_kernel_map(
         Precomputed ``hk.columns(landmarks)``, shape (L, n, J).
     time_index : sequence of int or slice, optional
         Use only these of the J times.
+    dtype : torch.dtype, optional
+        Compute in this precision where the eigenbasis serves every time (default: the
+        solver's); e.g. float32 for nearest-neighbour searches that run in float32 anyway.
 
     Returns
     -------
@@ -61,6 +65,10 @@ def heat_kernel_map(
     >>> heat_kernel_map(HeatKernel(Mesh(s.vertices, s.faces)), [0, 1]).shape
     torch.Size([162, 20])
     """
+    if columns is None:
+        fast = hk.spectral_map(landmarks, time_index, dtype=dtype)
+        if fast is not None:
+            return fast
     C = hk.columns(landmarks, certify=False) if columns is None else columns
     t = hk.times.to(C.dtype).to(C.device)
     if time_index is not None:
@@ -216,8 +224,16 @@ def farthest_point_sampling(
         start = int(np.argmax(((X - X.mean(axis=0)) ** 2).sum(axis=1)))
     out = np.empty(k, dtype=np.int64)
     out[0] = start
-    d = ((X - X[start]) ** 2).sum(axis=1)
+    cols = [np.ascontiguousarray(X[:, j]) for j in range(X.shape[1])]
+
+    def sq(i: int) -> np.ndarray:
+        r = (cols[0] - cols[0][i]) ** 2
+        for c in cols[1:]:
+            r += (c - c[i]) ** 2
+        return r
+
+    d = sq(start)
     for i in range(1, k):
         out[i] = int(np.argmax(d))
-        d = np.minimum(d, ((X - X[out[i]]) ** 2).sum(axis=1))
+        np.minimum(d, sq(int(out[i])), out=d)
     return torch.from_numpy(out)
