@@ -78,6 +78,29 @@ def test_run_writes_lines_and_summary_and_rerun_does_nothing(reference, monkeypa
 
 
 @needs_data
+def test_disk_cache_gives_the_same_results(reference, monkeypatch):
+    # the eigenbasis comes from the per-shape disk cache: written on the first run, read (no
+    # eigensolve) on the second, and the results equal those of the uncached run
+    tmp, _, _, results = reference
+    cache = tmp / "shape-cache"
+    batch.clear_caches()
+    first = batch.run(_config(tmp, tmp / "cached1", cache=str(cache), limit=2), progress=False)
+    files = sorted(cache.rglob("*.npz"))
+    assert len(files) == 3  # cat0, cat1, cat10
+    from torchheat import heat
+
+    calls = []
+    orig = heat.HeatKernel._eigensolve
+    monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
+                        lambda self, k: calls.append(k) or orig(self, k))
+    batch.clear_caches()
+    second = batch.run(_config(tmp, tmp / "cached2", cache=str(cache), limit=2), progress=False)
+    assert calls == []
+    ref = {k: v for k, v in _numbers(results).items() if k in _numbers(first)}
+    assert _numbers(first) == _numbers(second) == ref
+
+
+@needs_data
 def test_errors_match_evaluate_module(reference):
     """The union-of-sources evaluation equals torchheat.evaluate.geodesic_errors."""
     from torchheat import datasets

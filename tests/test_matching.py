@@ -274,6 +274,58 @@ def test_mirror_symmetric_landmark_on_plane(mirror_pair):
     assert exact(corr.symmetric_map, perm[mp]) >= 0.95
 
 
+def test_twin_landmark_on_plane_is_off_plane_with_mirror_twin(mirror_pair):
+    # p on the symmetry plane: the second landmark must lie off the plane, so that its two
+    # near-best images (itself and its mirror) separate the direct map from the mirror one
+    S, _, _, mp = mirror_pair
+    V = S.mesh.numpy()[0]
+    diam = float(np.linalg.norm(V.max(0) - V.min(0)))
+    on_plane = np.flatnonzero(V[:, 1] == 0.0)
+    p = int(on_plane[len(on_plane) // 3])
+    p2 = tm._twin_landmark(S, p, True, None, diam)
+    assert p2 is not None
+    assert abs(V[p2, 1]) > 0.1 * np.abs(V[:, 1]).max()
+    assert np.linalg.norm(V[p2] - V[mp[p2]]) > 0.2 * diam
+
+
+def test_fps_cache_is_a_prefix(small_mesh):
+    from torchheat.descriptors import farthest_point_sampling
+
+    s = prepare(small_mesh)
+    a = tm._fps(s, 10)
+    b = tm._fps(s, 300)
+    V = small_mesh.numpy()[0]
+    assert a.tolist() == b[:10].tolist()
+    assert b.tolist() == farthest_point_sampling(V, 300).tolist()
+
+
+def test_factored_l2_search_equals_brute_force():
+    g = torch.Generator().manual_seed(3)
+    Ps, Pt = torch.randn(300, 20, generator=g), torch.randn(250, 24, generator=g)
+    Cs, Ct = torch.randn(20, 60, generator=g), torch.randn(24, 60, generator=g)
+    X, Y = (Ps @ Cs).double(), (Pt @ Ct).double()
+    D = torch.cdist(X, Y) ** 2
+    ref_d, ref_i = D.min(dim=1)
+    d, i = tm._nn_l2_factored(Ps, Cs, Pt, Ct, memory_bytes=4 * 250 * 7)  # 7-row blocks
+    assert (i == ref_i).float().mean() >= 0.99  # float32 rounding may swap near-ties
+    torch.testing.assert_close(d.double(), ref_d, rtol=1e-3, atol=1e-2)
+
+
+def test_spectral_map_equals_columns(small_mesh):
+    hk = HeatKernel(small_mesh, method="spectral", k=60)
+    lms = [3, 40, 77]
+    C = hk.columns(lms, certify=False)  # [L, n, J]
+    t = hk.times
+    ref = (C * t).permute(1, 0, 2).reshape(small_mesh.n_vertices, -1)
+    torch.testing.assert_close(hk.spectral_map(lms), ref, rtol=1e-10, atol=0)
+    f32 = hk.spectral_map(lms, time_index=slice(1, None, 2), dtype=torch.float32)
+    assert f32.dtype == torch.float32
+    sub = (C[:, :, 1::2] * t[1::2]).permute(1, 0, 2).reshape(small_mesh.n_vertices, -1)
+    torch.testing.assert_close(f32.double(), sub, rtol=1e-5, atol=1e-6 * float(sub.abs().max()))
+    # a hybrid plan with Chebyshev times has no single-product form
+    assert HeatKernel(small_mesh, times=[1e-3, 1.0]).spectral_map(lms) is None
+
+
 def test_symmetry_finds_mirror(mirror_pair):
     S, _, _, mp = mirror_pair
     corr = symmetry(S)

@@ -117,7 +117,7 @@ _LOADERS = ("tosca_remeshed_5k", "tosca_remeshed_5k_symmetry", "scape", "tosca_h
             "folder")
 _TASKS = ("match", "symmetry")
 _CONFIG_KEYS = {"name", "dataset", "dataset_args", "task", "match", "prepare", "limit",
-                "eval_points", "output", "pictures", "distortion"}
+                "eval_points", "output", "pictures", "distortion", "cache"}
 _PREPARE_KEYS = {"k", "feature_time", "rtol", "kind", "boundary"}
 RESULTS = "results.jsonl"
 
@@ -147,7 +147,9 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
     -------
     dict
         Keys ``name, dataset, dataset_args, task, match, prepare, limit, eval_points, output,
-        pictures, distortion`` (``output`` defaults to ``out/<name>``).
+        pictures, distortion, cache`` (``output`` defaults to ``out/<name>``; ``cache``:
+        None or the folder of the per-shape disk cache, ``true`` meaning
+        :func:`torchheat.datasets.default_cache_dir`).
 
     Raises
     ------
@@ -192,6 +194,7 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
         "output": raw.get("output"),
         "pictures": raw.get("pictures", 3),
         "distortion": raw.get("distortion", False),
+        "cache": raw.get("cache", False),
     }
     if not isinstance(cfg["name"], str) or not cfg["name"].strip():
         raise ConfigError(f"{where}: 'name' (a non-empty string) is required")
@@ -216,6 +219,17 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
         raise ConfigError(f"{where}: 'pictures' must be an integer >= 0, got {p!r}")
     if not isinstance(cfg["distortion"], bool):
         raise ConfigError(f"{where}: 'distortion' must be true or false")
+    c = cfg["cache"]
+    if c is None or c is False:
+        cfg["cache"] = None
+    elif c is True:
+        from .datasets import default_cache_dir
+
+        cfg["cache"] = str(default_cache_dir())
+    elif isinstance(c, str) and c.strip():
+        cfg["cache"] = c
+    else:
+        raise ConfigError(f"{where}: 'cache' must be true, false or a folder, got {c!r}")
     if cfg["output"] is None:
         cfg["output"] = f"out/{cfg['name']}"
     cfg["output"] = str(cfg["output"])
@@ -345,7 +359,19 @@ def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
 
     def make() -> Any:
         with threads(match_opts.get("num_threads")):
-            return prepare(shape.mesh, **kw)
+            if getattr(shape, "data", None) is None:
+                return prepare(shape.mesh, **kw)
+            # eigenbasis from the disk cache: no eigensolve
+            adaptive = kw["times"] == "adaptive"
+            times = None if kw["times"] in ("adaptive", "paper") else kw["times"]
+            hk_kw = {k: kw[k] for k in ("k", "rtol") if k in kw}
+            hk = shape.heat_kernel(times=times, method="spectral" if adaptive else "auto",
+                                   **hk_kw)
+            if adaptive:
+                hk.set_times(hk.adaptive_times())
+            return prepare(shape.mesh, hk=hk, max_features=kw["max_features"],
+                           **({"feature_time": kw["feature_time"]}
+                              if "feature_time" in kw else {}))
 
     return _PREPARED[role].get_or(key, make)
 
@@ -524,17 +550,29 @@ class PairTask:
     eval_points: int | None
     distortion: bool
     keep_map: bool
+    cache: str | None = None
 
 
 def _freeze(d: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
     return tuple(sorted((str(k), v) for k, v in d.items()))
 
 
-def _load_dataset(dataset: str, args: Mapping[str, Any]) -> Any:
+def _load_dataset(dataset: str, args: Mapping[str, Any], cache: str | None = None,
+                  prep: Mapping[str, Any] | None = None) -> Any:
+    """The pair collection of a config (memoised per process). With ``cache`` (a folder) its
+    shapes carry the eigenbasis, cached on disk by :class:`~torchheat.datasets.Preprocess`
+    with the ``prepare`` options' ``k``, ``kind`` and ``boundary``."""
     from . import datasets
+
+    prep = dict(prep or {})
 
     def make() -> Any:
         kw = dict(args)
+        if cache:
+            kw["preprocess"] = datasets.Preprocess(
+                k=int(prep.get("k", 100)), kind=prep.get("kind", "cotan"),
+                boundary=prep.get("boundary", "neumann"))
+            kw["cache_dir"] = cache
         if dataset == "folder":
             pairs = kw.pop("pairs", None)
             gt = kw.pop("gt", "identity")
@@ -548,13 +586,20 @@ def _load_dataset(dataset: str, args: Mapping[str, Any]) -> Any:
         except TypeError as exc:
             raise ConfigError(f"dataset_args for {dataset}: {exc}") from None
 
-    return _DATASETS.get_or((dataset, json.dumps(dict(args), sort_keys=True, default=str)), make)
+    return _DATASETS.get_or(_dataset_key(dataset, args, cache, prep), make)
+
+
+def _dataset_key(dataset: str, args: Mapping[str, Any], cache: str | None,
+                 prep: Mapping[str, Any]) -> tuple:
+    extra = {k: prep.get(k) for k in ("k", "kind", "boundary")} if cache else {}
+    return (dataset, json.dumps(dict(args), sort_keys=True, default=str), cache,
+            json.dumps(extra, sort_keys=True))
 
 
 def _run_task(task: PairTask) -> dict[str, Any]:
     """Executor entry point: load the pair, evaluate it; exceptions become error records."""
     try:
-        pc = _load_dataset(task.dataset, dict(task.dataset_args))
+        pc = _load_dataset(task.dataset, dict(task.dataset_args), task.cache, dict(task.prepare))
         pair = pc[task.index]
         if pair.name != task.name:
             raise RuntimeError(f"pair {task.index} is {pair.name}, expected {task.name}")
@@ -693,21 +738,22 @@ def _in_completion_order(executor: Any, fn: Callable, tasks: list) -> Iterator[d
 
 
 def _tasks(cfg: Mapping[str, Any]) -> list[PairTask]:
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
     names = pc.names
     n = len(names) if cfg["limit"] is None else min(len(names), int(cfg["limit"]))
     h = options_hash(cfg)
     return [
         PairTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i, names[i], f"{names[i]}#{h}",
                  h, cfg["task"], _freeze(cfg["match"]), _freeze(cfg["prepare"]),
-                 cfg["eval_points"], bool(cfg["distortion"]), i < int(cfg["pictures"]))
+                 cfg["eval_points"], bool(cfg["distortion"]), i < int(cfg["pictures"]),
+                 cfg.get("cache"))
         for i in range(n)
     ]
 
 
 def _target_of(task: PairTask) -> str:
-    pc = _DATASETS.get((task.dataset, json.dumps(dict(task.dataset_args), sort_keys=True,
-                                                  default=str)))
+    pc = _DATASETS.get(_dataset_key(task.dataset, dict(task.dataset_args), task.cache,
+                                    dict(task.prepare)))
     if pc is None:
         return task.name
     return pc.shapes.names[pc.pairs[task.index][1]]
@@ -963,7 +1009,7 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
     color_transfer = getattr(viz, "color_transfer", None)
     if color_transfer is None:
         return
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
     index = {n: i for i, n in enumerate(pc.names)}
     for rec in results[: int(cfg["pictures"])]:
         png = out / "pictures" / f"{rec['name']}.png"

@@ -416,8 +416,22 @@ class HeatKernel:
 
             lam, phi = scipy.linalg.eigh(W.toarray(), A.toarray())
             lam, phi = lam[:k], phi[:, :k]
+        elif A.nnz == m and (A.diagonal() > 0).all():
+            # lumped mass: the symmetric form S = A^-1/2 W A^-1/2 in shift-invert about a
+            # small negative shift (S + 0.01 I is positive definite), one sparse LU, and
+            # phi = A^-1/2 psi. Same eigenpairs as the generalized problem to rounding, and
+            # ~20 % faster: no mass products or M-inner products inside ARPACK.
+            isq = 1.0 / np.sqrt(A.diagonal())
+            D = sp.diags(isq)
+            shift = 0.01
+            lu = sla.splu((D @ W @ D + shift * sp.eye(m)).tocsc())
+            op = sla.LinearOperator((m, m), matvec=lu.solve, dtype=np.float64)
+            mu, psi = sla.eigsh(op, k=k, which="LM", v0=np.ones(m))
+            lam = 1.0 / mu - shift
+            order = np.argsort(lam)
+            lam, phi = lam[order], psi[:, order] * isq[:, None]
         else:
-            # shift-invert about a small negative shift: W + 0.01 A is positive definite
+            # consistent mass: the generalized problem, shift-invert about -0.01
             lam, phi = sla.eigsh(W, k=k, M=A, sigma=-0.01, which="LM",
                                  v0=np.ones(m))
             order = np.argsort(lam)
@@ -721,6 +735,34 @@ class HeatKernel:
             self.error_bound = None
         return out
 
+    def spectral_factors(
+        self,
+        sources: Sequence[int] | np.ndarray | torch.Tensor,
+        time_index: Sequence[int] | slice | None = None,
+        scaled: bool = True,
+        dtype: torch.dtype | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(phi [n, k], coeff [k, B J'])`` with ``phi @ coeff`` = :meth:`spectral_map`.
+
+        The heat kernel map of B sources has rank at most k: this factored form lets a
+        nearest-neighbour search between two shapes work in k dimensions instead of B J'.
+        None when some time is not served by the eigenbasis (see :meth:`spectral_map`).
+        """
+        if not (self._plan.spectral.all() and self._idx.size == self.n):
+            return None
+        src, red, _ = self._reduced_sources(sources)
+        dev, dt = self.device, self.dtype if dtype is None else dtype
+        t = self.times.to(dt).to(dev)
+        if time_index is not None:
+            t = t[time_index]
+        phi = self._phi_torch(dt, dev)
+        lam = torch.as_tensor(self._lam, dtype=dt, device=dev)
+        E = torch.exp(-t[None, :] * lam[:, None])  # [k, J']
+        if scaled:
+            E = E * t[None, :]
+        coeff = phi[torch.as_tensor(red, device=dev)].T[:, :, None] * E[:, None, :]
+        return phi, coeff.reshape(phi.shape[1], -1)
+
     def spectral_map(
         self,
         sources: Sequence[int] | np.ndarray | torch.Tensor,
@@ -738,21 +780,9 @@ class HeatKernel:
         times (see :attr:`plan`), or float32 rounding (~1e-6 relative) with
         ``dtype=torch.float32``; cost ``2 n k B J'`` flops.
         """
-        if not (self._plan.spectral.all() and self._idx.size == self.n):
-            return None
-        src, red, _ = self._reduced_sources(sources)
-        dev, dt = self.device, self.dtype if dtype is None else dtype
-        t = self.times.to(dt).to(dev)
-        if time_index is not None:
-            t = t[time_index]
         with threads(self.num_threads):
-            phi = self._phi_torch(dt, dev)
-            lam = torch.as_tensor(self._lam, dtype=dt, device=dev)
-            E = torch.exp(-t[None, :] * lam[:, None])  # [k, J']
-            if scaled:
-                E = E * t[None, :]
-            coeff = phi[torch.as_tensor(red, device=dev)].T[:, :, None] * E[:, None, :]
-            return phi @ coeff.reshape(phi.shape[1], -1)
+            f = self.spectral_factors(sources, time_index, scaled, dtype)
+            return None if f is None else f[0] @ f[1]
 
     def _tail(self, js: np.ndarray, degrees: np.ndarray) -> np.ndarray:
         out = np.empty(len(js))

@@ -171,7 +171,9 @@ def nearest_neighbors(
         return _nn_cdist(X, Y.to(X.dtype), p, memory_bytes)
     if engine == "kdtree":
         tree = cKDTree(Y.detach().cpu().double().numpy())
-        d, i = tree.query(X.detach().cpu().double().numpy(), k=1, p=p, workers=-1)
+        # as many query threads as torch may use (1 in batch workers: no oversubscription)
+        workers = torch.get_num_threads()
+        d, i = tree.query(X.detach().cpu().double().numpy(), k=1, p=p, workers=workers)
         return (torch.from_numpy(d).to(X.dtype).to(X.device),
                 torch.from_numpy(i.astype(np.int64)).to(X.device))
     raise ValueError(f"unknown engine {engine!r}; use 'auto', 'cdist' or 'kdtree'")
@@ -614,25 +616,53 @@ def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20
     return best_d, best_i
 
 
+def _nn_l2_factored(Ps: torch.Tensor, Cs: torch.Tensor, Pt: torch.Tensor, Ct: torch.Tensor,
+                    memory_bytes: int = 256 * 2**20) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_nn_l2` of ``X = Ps @ Cs`` against ``Y = Pt @ Ct`` through the k-dimensional
+    factors: ``x.y = Ps(x) (Cs Ct^T) Pt(y)^T``, so the big product has inner dimension k
+    (eigenpairs, 100) instead of the descriptor's (landmarks x times, 240)."""
+    Y = Pt @ Ct
+    yy = (Y * Y).sum(dim=1)
+    X = Ps @ Cs
+    xx = (X * X).sum(dim=1)
+    Z = Pt @ (Cs @ Ct.T).T  # [m, k_s]
+    m = Z.shape[0]
+    rows = max(1, int(memory_bytes // max(1, 4 * m)))
+    best_d = torch.empty(Ps.shape[0], dtype=torch.float32, device=Ps.device)
+    best_i = torch.empty(Ps.shape[0], dtype=torch.int64, device=Ps.device)
+    for r0 in range(0, Ps.shape[0], rows):
+        G = torch.addmm(yy[None, :], Ps[r0 : r0 + rows], Z.T, alpha=-2.0)
+        d, i = G.min(dim=1)
+        best_d[r0 : r0 + rows] = (d + xx[r0 : r0 + rows]).clamp_min(0)
+        best_i[r0 : r0 + rows] = i
+    return best_d, best_i
+
+
 def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None):
     """Correspondence augmentation on samples: landmarks ``samples -> g``; NN in L2 of the
-    multi-landmark heat kernel map for the source vertices ``rows`` (all when None)."""
+    multi-landmark heat kernel map. Intermediate rounds map the samples only; the last one
+    maps the source vertices ``rows`` (samples first; all vertices when None)."""
     energy = math.inf
     out = None
     for it in range(iterations):
-        Dq = _refine_descriptor(tgt, g, log_floor)
-        Dp = Dp_full[samples] if (rows is None and it < iterations - 1) else (
-            Dp_full if rows is None else Dp_full[rows])
-        d2, idx = _nn_l2(Dp, Dq)
-        energy = float(d2.double().mean())
-        if rows is None and it < iterations - 1:
-            g = idx
-        elif rows is None:
-            out = idx
+        if it < iterations - 1:
+            Dq = _refine_descriptor(tgt, g, log_floor)
+            d2, g = _nn_l2(Dp_full[samples], Dq)
+            energy = float(d2.double().mean())
+            continue
+        fs = ft = None
+        if rows is None and log_floor is None:
+            fs = src.hk.spectral_factors(samples, _REFINE_TIMES, dtype=torch.float32)
+            ft = tgt.hk.spectral_factors(g, _REFINE_TIMES, dtype=torch.float32)
+        if fs is not None and ft is not None:
+            with threads(src.hk.num_threads):
+                d2, out = _nn_l2_factored(fs[0], fs[1], ft[0], ft[1])
         else:
-            out = idx
-            # the samples are the first rows: feed their images back
-            g = idx[: len(samples)]
+            Dq = _refine_descriptor(tgt, g, log_floor)
+            d2, out = _nn_l2(Dp_full if rows is None else Dp_full[rows], Dq)
+        energy = float(d2.double().mean())
+        if rows is not None:
+            g = out[: len(samples)]  # the samples are the first rows: feed their images back
     return out, g, energy
 
 
@@ -716,7 +746,7 @@ def match(
     times: str | Sequence[float] | None = None,
     use_hks: bool = True,
     engine: str = "auto",
-    n_candidates: int = 6,
+    n_candidates: int = 3,
     refine_samples: int = 48,
     refine_iterations: int = 3,
     orientation: bool = True,
@@ -726,7 +756,10 @@ def match(
     mirror_energy_ratio: float | None = None,
     orientation_weight: float = 3.0,
     refine_log_floor: float | None = None,
-    expand_top: int = 3,
+    expand_top: int = 2,
+    source_landmarks: int = 5,
+    extra_candidates: int = 20,
+    refine_keep: int | None = 8,
     orientation_samples: int = 128,
     num_threads: int | None = None,
     final_map: bool = True,
@@ -786,6 +819,15 @@ def match(
         two hypotheses by a second source landmark that separates the direct map from its
         mirror (see ``_twin_landmark``); needed when ``p`` lies on the symmetry plane (the
         tail tip of a cat, measured: its one-point map then mixes left and right).
+    source_landmarks : int
+        (``method="refine"``, automatic landmark) Number of source landmarks whose
+        candidates seed hypotheses: the strongest feature, then features farthest from the
+        ones already used.
+    refine_keep : int or None
+        Hypotheses carried past the first refinement round (lowest energy first; None:
+        all).
+    extra_candidates : int
+        Target features scored for each extra source landmark: those of closest HKS.
     orientation_samples : int
         Farthest-point samples whose fat triangles the orientation test reads (``method=
         "refine"``; more triangles average out the local errors of a refined map).
@@ -899,13 +941,56 @@ def match(
             hyp = [lm for i, q in enumerate(_distinct(cands, Vt, 0.05 * diam_t, n_candidates))
                    for lm in _expand(src, tgt, p, q, p2 if i < expand_top else None, use_hks,
                                      0.05 * diam_t)]
+            if landmark is None and source_landmarks > 1:
+                # more starting points: further source features, each farthest from the ones
+                # already used, with their own candidates and twin landmarks
+                feats = src.features.numpy()
+                used = [p]
+                # a quarter of the score samples (a farthest-point prefix: still spread)
+                extra_rows = _fps(src, max(100, (score_samples or src.n) // 4))
+                for _ in range(min(source_landmarks, feats.size) - 1):
+                    d = np.min(np.linalg.norm(Vs[feats][:, None] - Vs[used][None], axis=2),
+                               axis=1)
+                    pe = int(feats[int(np.argmax(d))])
+                    used.append(pe)
+                    # candidates: the target features of most similar HKS (the true image
+                    # has nearly the same), then the full score E(pe, q) on those
+                    pool_e = tgt.features
+                    if pool_e.numel() > extra_candidates:
+                        dh = (tgt.hks[pool_e] - src.hks[pe].to(tgt.hks.dtype)).abs().amax(1)
+                        pool_e = pool_e[torch.argsort(dh, stable=True)[:extra_candidates]]
+                    sc = landmark_scores(src, tgt, pe, pool_e, use_hks=use_hks,
+                                         engine=engine, samples=extra_rows)
+                    ce = pool_e[torch.argsort(sc, stable=True)]
+                    pe2 = _twin_landmark(src, pe, use_hks, score_rows, diam_s)
+                    hyp += [lm for i, q in enumerate(_distinct(ce, Vt, 0.05 * diam_t,
+                                                               n_candidates))
+                            for lm in _expand(src, tgt, pe, q, pe2 if i < expand_top else None,
+                                              use_hks, 0.05 * diam_t)]
             Dp_full = _refine_descriptor(src, samples, refine_log_floor)
-            results = []
+            # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
+            # energy go on: a hypothesis that starts far behind does not converge (measured:
+            # the energies of converged and failed hypotheses differ 5-50x)
+            Ds = Dp_full[samples]
+            stage = []
             for lms0 in hyp:
-                g_rows, _ = _sample_map(src, tgt, lms0, rows, use_hks, engine)
-                g = g_rows[: samples.numel()]
-                f_rows, g, energy = _augment(src, tgt, samples, g, rows, refine_iterations,
-                                                 Dp_full, refine_log_floor)
+                g0, _ = _sample_map(src, tgt, lms0, samples, use_hks, engine)
+                if refine_iterations > 1:
+                    d2, g0 = _nn_l2(Ds, _refine_descriptor(tgt, g0, refine_log_floor))
+                    e1 = float(d2.double().mean())
+                else:
+                    e1 = 0.0
+                stage.append((e1, len(stage), lms0, g0))
+            stage.sort(key=lambda s_: (s_[0], s_[1]))
+            keep = len(stage) if refine_keep is None else max(1, int(refine_keep))
+            results = []
+            for e1, _, lms0, g0 in stage[keep:]:
+                hypotheses.append((lms0, e1, float("nan")))
+                hyp_images.append(g0)
+            for _, _, lms0, g0 in stage[:keep]:
+                f_rows, g, energy = _augment(src, tgt, samples, g0, rows,
+                                             max(refine_iterations - 1, 1), Dp_full,
+                                             refine_log_floor)
                 o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                 results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
                 hypotheses.append((lms0, energy, o))
