@@ -602,14 +602,18 @@ def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20
     """
     Xf = X.float()
     Yf = Y.float()
-    yy = (Yf * Yf).sum(dim=1)
-    xx = (Xf * Xf).sum(dim=1)
-    m = Yf.shape[0]
+    return _blocked_argmin(Xf, Yf, (Xf * Xf).sum(dim=1), (Yf * Yf).sum(dim=1), memory_bytes)
+
+
+def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torch.Tensor,
+                    memory_bytes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``min_y xx + yy - 2 x.y`` over the rows of Y, in row blocks of X within the budget."""
+    m = Y.shape[0]
     rows = max(1, int(memory_bytes // max(1, 4 * m)))
-    best_d = torch.empty(Xf.shape[0], dtype=torch.float32, device=X.device)
-    best_i = torch.empty(Xf.shape[0], dtype=torch.int64, device=X.device)
-    for r0 in range(0, Xf.shape[0], rows):
-        G = torch.addmm(yy[None, :], Xf[r0 : r0 + rows], Yf.T, alpha=-2.0)
+    best_d = torch.empty(X.shape[0], dtype=torch.float32, device=X.device)
+    best_i = torch.empty(X.shape[0], dtype=torch.int64, device=X.device)
+    for r0 in range(0, X.shape[0], rows):
+        G = torch.addmm(yy[None, :], X[r0 : r0 + rows], Y.T, alpha=-2.0)
         d, i = G.min(dim=1)
         best_d[r0 : r0 + rows] = (d + xx[r0 : r0 + rows]).clamp_min(0)
         best_i[r0 : r0 + rows] = i
@@ -626,16 +630,7 @@ def _nn_l2_factored(Ps: torch.Tensor, Cs: torch.Tensor, Pt: torch.Tensor, Ct: to
     X = Ps @ Cs
     xx = (X * X).sum(dim=1)
     Z = Pt @ (Cs @ Ct.T).T  # [m, k_s]
-    m = Z.shape[0]
-    rows = max(1, int(memory_bytes // max(1, 4 * m)))
-    best_d = torch.empty(Ps.shape[0], dtype=torch.float32, device=Ps.device)
-    best_i = torch.empty(Ps.shape[0], dtype=torch.int64, device=Ps.device)
-    for r0 in range(0, Ps.shape[0], rows):
-        G = torch.addmm(yy[None, :], Ps[r0 : r0 + rows], Z.T, alpha=-2.0)
-        d, i = G.min(dim=1)
-        best_d[r0 : r0 + rows] = (d + xx[r0 : r0 + rows]).clamp_min(0)
-        best_i[r0 : r0 + rows] = i
-    return best_d, best_i
+    return _blocked_argmin(Ps, Z, xx, yy, memory_bytes)
 
 
 def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None):
