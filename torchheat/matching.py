@@ -773,11 +773,17 @@ def match(
         greedily among feature pairs, source candidates in farthest-point order).
     method : {"refine", "paper"}
         ``"paper"``: the paper's pipeline: one-point map (+ greedy landmarks); best candidate
-        = direct map, next distinct candidate = symmetric map. ``"refine"`` (default): every
-        one of the ``n_candidates`` top distinct candidates is refined by correspondence
-        augmentation (``refine_samples`` farthest-point landmarks whose images come from the
-        current map, ``refine_iterations`` rounds), then the orientation test picks the direct
-        (orientation-preserving) and the symmetric (reversing) hypothesis of lowest energy.
+        = direct map, next distinct candidate = symmetric map. ``"refine"`` (default): the
+        paper's correspondence augmentation applied to many one-point hypotheses.
+        ``source_landmarks`` source features (the strongest, then farthest-point order) each
+        get their ``n_candidates`` best distinct target candidates (scored by ``E(p, q)``);
+        the top ``expand_top`` of each are split in two by a second landmark that separates
+        the direct map from its mirror. Every hypothesis is refined (``refine_samples``
+        farthest-point landmarks whose images come from the current map, ``refine_iterations``
+        rounds; the ``refine_keep`` best after round 1 go on), the mirror partner of the best
+        one is added from the target's self-symmetry, and the direct map is the hypothesis
+        minimising ``log(energy) - orientation_weight * orientation``; the symmetric map the
+        best orientation-reversing one.
     times : "adaptive", "paper" or sequence of float, optional
         Time samples for shapes given as meshes (see :func:`prepare`; default "adaptive").
         The target always uses the source's times.
