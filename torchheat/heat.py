@@ -735,6 +735,12 @@ class HeatKernel:
             self.error_bound = None
         return out
 
+    @property
+    def has_constant_mode(self) -> bool:
+        """Whether the eigenbasis starts with the constant mode (lambda_0 = 0, Neumann)."""
+        return bool(self._lam.size > 1
+                    and self._lam[0] <= 1e-9 * max(float(self._lam[-1]), 1.0))
+
     def spectral_factors(
         self,
         sources: Sequence[int] | np.ndarray | torch.Tensor,
@@ -756,9 +762,7 @@ class HeatKernel:
         """
         if not (self._plan.spectral.all() and self._idx.size == self.n):
             return None
-        if drop_constant and not (self._lam.size > 1
-                                  and self._lam[0] <= 1e-9 * max(float(self._lam[-1]), 1.0)):
-            drop_constant = False
+        drop_constant = drop_constant and self.has_constant_mode
         src, red, _ = self._reduced_sources(sources)
         dev, dt = self.device, self.dtype if dtype is None else dtype
         t = self.times.to(dt).to(dev)

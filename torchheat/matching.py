@@ -656,14 +656,14 @@ def _nn_l2_factored(Ps: torch.Tensor, Cs: torch.Tensor, Pt: torch.Tensor, Ct: to
 
 def _zero_mode(shape: PreparedShape) -> bool:
     """Whether the eigenbasis starts with the constant mode (lambda_0 = 0: Neumann)."""
-    lam = shape.hk.eigenvalues
-    return lam.numel() > 1 and float(lam[0]) <= 1e-9 * max(float(lam[-1]), 1.0)
+    return shape.hk.has_constant_mode
 
 
-def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None):
+def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None, Dp_final=None):
     """Correspondence augmentation on samples: landmarks ``samples -> g``; NN in L2 of the
     multi-landmark heat kernel map. Intermediate rounds map the samples only; the last one
-    maps the source vertices ``rows`` (samples first; all vertices when None)."""
+    maps the source vertices ``rows`` (samples first; all vertices when None), with the
+    source descriptor ``Dp_final`` (in ``_FINAL_DTYPE``; default ``Dp_full``)."""
     energy = math.inf
     out = None
     for it in range(iterations):
@@ -684,10 +684,8 @@ def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None):
                 d2, out = _nn_l2_factored(fs[0], fs[1], ft[0], ft[1])
         else:
             Dq = _refine_descriptor(tgt, g, log_floor, dtype=_FINAL_DTYPE)
-            Dp = Dp_full if rows is None else Dp_full[rows]
-            if log_floor is None and rows is not None and Dp.dtype != _FINAL_DTYPE:
-                Dp = _refine_descriptor(src, samples, None, dtype=_FINAL_DTYPE)[rows]
-            d2, out = _nn_l2(Dp, Dq, dtype=_FINAL_DTYPE)
+            Dp = Dp_full if Dp_final is None else Dp_final
+            d2, out = _nn_l2(Dp if rows is None else Dp[rows], Dq, dtype=_FINAL_DTYPE)
         energy = float(d2.double().mean())
         if rows is not None:
             g = out[: len(samples)]  # the samples are the first rows: feed their images back
@@ -984,9 +982,7 @@ def match(
                 # a quarter of the score samples (a farthest-point prefix: still spread)
                 extra_rows = _fps(src, max(100, (score_samples or src.n) // 4))
                 for _ in range(min(source_landmarks, feats.size) - 1):
-                    d = np.min(np.linalg.norm(Vs[feats][:, None] - Vs[used][None], axis=2),
-                               axis=1)
-                    pe = int(feats[int(np.argmax(d))])
+                    pe = _farthest_feature(Vs, feats, used)
                     used.append(pe)
                     # candidates: the target features of most similar HKS (the true image
                     # has nearly the same), then the full score E(pe, q) on those
@@ -1003,6 +999,8 @@ def match(
                             for lm in _expand(src, tgt, pe, q, pe2 if i < expand_top else None,
                                               use_hks, 0.05 * diam_t)]
             Dp_full = _refine_descriptor(src, samples, refine_log_floor)
+            Dp_final = (Dp_full if refine_log_floor is not None
+                        else _refine_descriptor(src, samples, None, dtype=_FINAL_DTYPE))
             # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
             # energy go on: a hypothesis that starts far behind does not converge (measured:
             # the energies of converged and failed hypotheses differ 5-50x)
@@ -1031,7 +1029,7 @@ def match(
             for _, _, lms0, g0 in stage[:keep]:
                 f_rows, g, energy = _augment(src, tgt, samples, g0, rows,
                                              max(refine_iterations - 1, 1), Dp_full,
-                                             refine_log_floor)
+                                             refine_log_floor, Dp_final)
                 o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                 results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
                 hypotheses.append((lms0, energy, o))
@@ -1050,7 +1048,7 @@ def match(
                                    refine_log_floor)
                 if sig is not None:
                     f_rows, g2, e2 = _augment(src, tgt, samples, sig, rows, refine_iterations,
-                                              Dp_full, refine_log_floor)
+                                              Dp_full, refine_log_floor, Dp_final)
                     o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                     mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
                     hypotheses.append((["mirror of best"], e2, o2))
@@ -1093,7 +1091,7 @@ def match(
                     continue
                 if final_map:
                     r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
-                                                        Dp_full, refine_log_floor)
+                                                        Dp_full, refine_log_floor, Dp_final)
                 else:  # internal use (self-symmetry on samples): no dense map
                     r["map"] = None
                 r["landmarks"] = list(r["lms0"]) + [
@@ -1159,6 +1157,12 @@ def _symmetry_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None
     return _nn_l2(Dp, Dq)[1]
 
 
+def _farthest_feature(V: np.ndarray, feats: np.ndarray, used: Sequence[int]) -> int:
+    """The feature point farthest (Euclidean) from every vertex in ``used``."""
+    d = np.min(np.linalg.norm(V[feats][:, None] - V[list(used)][None], axis=2), axis=1)
+    return int(feats[int(np.argmax(d))])
+
+
 def _greedy_landmarks(src, tgt, lms, total, use_hks, engine):
     """Paper Sec. 4: add (p_i, q_i) among feature pairs minimising the combined error.
 
@@ -1169,8 +1173,7 @@ def _greedy_landmarks(src, tgt, lms, total, use_hks, engine):
     feats = src.features.numpy()
     while len(lms) < total:
         used = [a for a, _ in lms]
-        d = np.min(np.linalg.norm(V[feats][:, None] - V[used][None], axis=2), axis=1)
-        p2 = int(feats[int(np.argmax(d))])
+        p2 = _farthest_feature(V, feats, used)
         sc = landmark_scores(src, tgt, [*used, p2], tgt.features, q_fixed=[b for _, b in lms],
                              use_hks=use_hks, engine=engine)
         lms.append((p2, int(tgt.features[int(torch.argmin(sc))])))
