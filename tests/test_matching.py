@@ -299,16 +299,49 @@ def test_fps_cache_is_a_prefix(small_mesh):
     assert b.tolist() == farthest_point_sampling(V, 300).tolist()
 
 
-def test_factored_l2_search_equals_brute_force():
+@pytest.mark.parametrize("src_factored", [True, False])
+@pytest.mark.parametrize("tgt_factored", [True, False])
+def test_factored_l2_search_equals_brute_force(src_factored, tgt_factored):
     g = torch.Generator().manual_seed(3)
-    Ps, Pt = torch.randn(300, 20, generator=g), torch.randn(250, 24, generator=g)
-    Cs, Ct = torch.randn(20, 60, generator=g), torch.randn(24, 60, generator=g)
-    X, Y = (Ps @ Cs).double(), (Pt @ Ct).double()
-    D = torch.cdist(X, Y) ** 2
+    Ps, Pt = (torch.randn(300, 20, generator=g, dtype=torch.float64),
+              torch.randn(250, 24, generator=g, dtype=torch.float64))
+    Cs, Ct = (torch.randn(20, 60, generator=g, dtype=torch.float64),
+              torch.randn(24, 60, generator=g, dtype=torch.float64))
+    X, Y = Ps @ Cs, Pt @ Ct
+    rows = torch.arange(0, 300, 3)
+    D = ((X[rows, None, :] - Y[None, :, :]) ** 2).sum(dim=2)  # brute force
     ref_d, ref_i = D.min(dim=1)
-    d, i = tm._nn_l2_factored(Ps, Cs, Pt, Ct, memory_bytes=4 * 250 * 7)  # 7-row blocks
-    assert (i == ref_i).float().mean() >= 0.99  # float32 rounding may swap near-ties
-    torch.testing.assert_close(d.double(), ref_d, rtol=1e-3, atol=1e-2)
+    for dt in (torch.float64, torch.float32):
+        fx = tm._Factors(Ps.to(dt), Cs.to(dt)) if src_factored else tm._Factors(X.to(dt))
+        fy = tm._Factors(Pt.to(dt), Ct.to(dt)) if tgt_factored else tm._Factors(Y.to(dt))
+        d, i = tm._nn_factors(fx, rows, fy, memory_bytes=4 * 250 * 7)  # 7-row blocks
+        if dt == torch.float64:
+            assert torch.equal(i, ref_i)
+            torch.testing.assert_close(d, ref_d, rtol=1e-9, atol=1e-9 * float(D.max()))
+        else:
+            assert (i == ref_i).float().mean() >= 0.97  # float32 rounding may swap near-ties
+            torch.testing.assert_close(d.double(), ref_d, rtol=1e-3, atol=1e-2)
+    # |x|^2 through the Gram form (d > k) and explicitly (d < k) agree
+    for P, C in ((Ps, Cs), (Cs.T, Ps.T)):
+        f = tm._Factors(P.double(), C.double())
+        torch.testing.assert_close(f.sqnorms(), ((P @ C).double() ** 2).sum(1))
+
+
+def test_spectral_basis_truncation_bounds_descriptor_change(small_mesh):
+    hk = HeatKernel(small_mesh, method="spectral", k=60)
+    hk.set_times(hk.adaptive_times())
+    ti = slice(1, None, 2)
+    lms = [3, 40, 77]
+    full = hk.spectral_factors(lms, ti, drop_constant=True)
+    for tol in (1e-2, 1e-4):
+        phi, C = hk.spectral_factors(lms, ti, drop_constant=True, mode_tol=tol)
+        assert 1 <= phi.shape[1] < full[0].shape[1]
+        # the modes kept are the slowest ones, in order
+        torch.testing.assert_close(phi, full[0][:, : phi.shape[1]])
+        D, Dfull = phi @ C, full[0] @ full[1]
+        # what is left out weighs less than tol relative to the slowest non-constant mode
+        err = (D - Dfull).abs().max() / Dfull.abs().max()
+        assert err < 50 * tol
 
 
 def test_spectral_map_equals_columns(small_mesh):

@@ -439,13 +439,17 @@ class HeatKernel:
         lam = np.maximum(lam, 0.0)
         return lam, phi
 
-    def _phi_torch(self, dt: torch.dtype, dev: torch.device) -> torch.Tensor:
-        key = (dt, dev)
+    def _phi_torch(self, dt: torch.dtype, dev: torch.device, lo: int = 0,
+                   hi: int | None = None) -> torch.Tensor:
+        """Eigenvector columns ``lo:hi`` (reduced) as a contiguous tensor, cached."""
+        hi = self._phi_red.shape[1] if hi is None else hi
+        key = (dt, dev, lo, hi)
         cache = self.__dict__.setdefault("_phi_cache", {})
         if key not in cache:
-            if len(cache) >= 2:
+            if len(cache) >= 4:
                 cache.clear()
-            cache[key] = torch.as_tensor(self._phi_red, dtype=dt, device=dev).contiguous()
+            cache[key] = torch.as_tensor(self._phi_red[:, lo:hi], dtype=dt,
+                                         device=dev).contiguous()
         return cache[key]
 
     def _spectral_eta(self) -> np.ndarray:
@@ -741,6 +745,53 @@ class HeatKernel:
         return bool(self._lam.size > 1
                     and self._lam[0] <= 1e-9 * max(float(self._lam[-1]), 1.0))
 
+    def spectral_basis(
+        self,
+        time_index: Sequence[int] | slice | None = None,
+        scaled: bool = True,
+        dtype: torch.dtype | None = None,
+        drop_constant: bool = False,
+        mode_tol: float = 0.0,
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(phi [n, k'], E [k', J'])``: eigenfunctions and time weights ``t_j e^{-t_j lam_i}``.
+
+        ``t_j k_{t_j}(p, x) = sum_i phi[x, i] phi[p, i] E[i, j]`` for the times served by the
+        eigenbasis. ``drop_constant`` leaves out the constant mode (see
+        :meth:`spectral_factors`); ``mode_tol > 0`` also leaves out the fast tail: the modes
+        whose weight ``exp(-t (lam_i - lam_first))`` relative to the slowest kept mode is
+        below ``mode_tol`` at the smallest of these times (they change no descriptor by more
+        than that fraction of its slowest term). None when some time is not served by the
+        eigenbasis or there are Dirichlet vertices. Cost: ``O(k J')``; ``phi`` is cached.
+
+        Examples
+        --------
+        >>> import trimesh
+        >>> from torchheat import Mesh
+        >>> s = trimesh.creation.icosphere(3)
+        >>> hk = HeatKernel(Mesh(s.vertices, s.faces), method="spectral", k=40)
+        >>> phi, E = hk.spectral_basis(drop_constant=True)
+        >>> phi.shape, E.shape
+        (torch.Size([642, 39]), torch.Size([39, 10]))
+        """
+        if not (self._plan.spectral.all() and self._idx.size == self.n):
+            return None
+        lo = 1 if (drop_constant and self.has_constant_mode) else 0
+        hi = self._lam.size
+        t_all = self.times.numpy()
+        if time_index is not None:
+            t_all = t_all[time_index]
+        if mode_tol > 0 and hi > lo + 1:
+            rel = np.exp(-float(t_all.min()) * (self._lam[lo:] - self._lam[lo]))
+            hi = lo + max(1, int(np.count_nonzero(rel >= mode_tol)))
+        dev, dt = self.device, self.dtype if dtype is None else dtype
+        phi = self._phi_torch(dt, dev, lo, hi)
+        t = torch.as_tensor(t_all, dtype=dt, device=dev)
+        lam = torch.as_tensor(self._lam[lo:hi], dtype=dt, device=dev)
+        E = torch.exp(-t[None, :] * lam[:, None])  # [k', J']
+        if scaled:
+            E = E * t[None, :]
+        return phi, E
+
     def spectral_factors(
         self,
         sources: Sequence[int] | np.ndarray | torch.Tensor,
@@ -748,6 +799,7 @@ class HeatKernel:
         scaled: bool = True,
         dtype: torch.dtype | None = None,
         drop_constant: bool = False,
+        mode_tol: float = 0.0,
     ) -> tuple[torch.Tensor, torch.Tensor] | None:
         """``(phi [n, k], coeff [k, B J'])`` with ``phi @ coeff`` = :meth:`spectral_map`.
 
@@ -758,26 +810,16 @@ class HeatKernel:
         ``t_j / area`` is the same at every vertex of every unit-area shape, so distances
         between maps do not change, but it dominates their norm (measured: |x|^2 varies by
         2 % over a TOSCA mesh while neighbours differ by 1e-7 of it), which ruins
-        ``|x|^2 + |y|^2 - 2 x.y`` searches in float32.
+        ``|x|^2 + |y|^2 - 2 x.y`` searches in float32. ``mode_tol``: see
+        :meth:`spectral_basis`.
         """
-        if not (self._plan.spectral.all() and self._idx.size == self.n):
+        basis = self.spectral_basis(time_index, scaled, dtype, drop_constant, mode_tol)
+        if basis is None:
             return None
-        drop_constant = drop_constant and self.has_constant_mode
-        src, red, _ = self._reduced_sources(sources)
-        dev, dt = self.device, self.dtype if dtype is None else dtype
-        t = self.times.to(dt).to(dev)
-        if time_index is not None:
-            t = t[time_index]
-        phi = self._phi_torch(dt, dev)
-        lam = torch.as_tensor(self._lam, dtype=dt, device=dev)
-        E = torch.exp(-t[None, :] * lam[:, None])  # [k, J']
-        if scaled:
-            E = E * t[None, :]
-        coeff = phi[torch.as_tensor(red, device=dev)].T[:, :, None] * E[:, None, :]
-        coeff = coeff.reshape(phi.shape[1], -1)
-        if drop_constant:
-            return phi[:, 1:], coeff[1:]
-        return phi, coeff
+        phi, E = basis
+        _, red, _ = self._reduced_sources(sources)
+        coeff = phi[torch.as_tensor(red, device=phi.device)].T[:, :, None] * E[:, None, :]
+        return phi, coeff.reshape(phi.shape[1], -1)
 
     def spectral_map(
         self,

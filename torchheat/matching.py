@@ -573,57 +573,37 @@ def _sample_map(src, tgt, lms, rows, use_hks, engine) -> tuple[torch.Tensor, tor
 
 
 _REFINE_TIMES = slice(1, None, 2)  # every other time sample: half the dimensions, same span
-# Precision of the refinement's L2 searches. Both descriptor sets are centred first (the
-# constant mode is removed, _nn_l2 subtracts the mean): uncentred, float32 GEMM distances
-# mapped 45 % of a TOSCA shape's vertices onto a neighbour when matched against itself; centred,
-# 9 % (float64: none, at 1.6x the matching time, with no measurable accuracy gain on 32 TOSCA
-# pairs: 85.2 % vs 84.1 % on the 0.08 sqrt(area) proxy, within run-to-run noise).
+# Precision of the intermediate refinement rounds. The descriptors are centred (the constant
+# mode is removed): uncentred, float32 GEMM distances mapped 45 % of a TOSCA shape's vertices
+# onto a neighbour when matched against itself; centred, 9 % (float64: none, at 1.6x the
+# matching time, with no measurable accuracy gain on 32 TOSCA pairs: 85.2 % vs 84.1 % on the
+# 0.08 sqrt(area) proxy, within run-to-run noise).
 _REFINE_DTYPE = torch.float32
 # The last round (the returned map, and the hypothesis maps the orientation test reads) runs in
 # float64, so that a shape matched with itself gives the identity exactly.
 _FINAL_DTYPE = torch.float64
+# Eigenmodes of the refinement descriptor: the fast tail whose weight at the smallest
+# refinement time is below this fraction of the slowest mode's is left out (see
+# HeatKernel.spectral_basis); with adaptive times about 40 of 100 modes go.
+_MODE_TOL = 1e-4
 
 
-def _refine_descriptor(shape: PreparedShape, landmarks, log_floor: float | None = None,
-                       dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Multi-landmark descriptor of the refinement.
+@dataclass
+class _Factors:
+    """A descriptor ``D = P @ C`` (``[n, d]``) kept in factored form; ``C`` None: ``D = P``."""
 
-    With ``log_floor`` the heat kernel is taken in log scale, ``log max(k_t, floor)``: by
-    Varadhan's formula ``-4 t log k_t(s, x) -> d(s, x)^2``, so each coordinate behaves like a
-    geodesic distance to a landmark instead of vanishing away from it.
-    """
-    if log_floor is None:
-        # minus the constant mode's term t_j (unit area; the same offset on every shape, so
-        # distances are unchanged): it dominates |x|^2 and ruins GEMM-based L2 searches
-        if _zero_mode(shape):
-            f = shape.hk.spectral_factors(landmarks, _REFINE_TIMES,
-                                          dtype=dtype or _REFINE_DTYPE, drop_constant=True)
-            if f is not None:
-                with threads(shape.hk.num_threads):
-                    return f[0] @ f[1]
-        D = heat_kernel_map(shape.hk, landmarks, time_index=_REFINE_TIMES)
-        t = shape.hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
-        return D - t.repeat(D.shape[1] // t.numel())
-    D = heat_kernel_map(shape.hk, landmarks, time_index=_REFINE_TIMES, dtype=_REFINE_DTYPE)
-    t = shape.hk.times[_REFINE_TIMES].to(D.dtype)
-    L = D.shape[1] // t.numel()
-    k = D / t.repeat(L)  # undo the t-scaling
-    return torch.log(k.clamp_min(log_floor))
+    P: torch.Tensor  # [n, k]
+    C: torch.Tensor | None = None  # [k, d]
 
-
-def _nn_l2(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = 256 * 2**20,
-           dtype: torch.dtype | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest neighbour in L2 by blocked GEMM, ``argmin_y |y|^2 - 2 x.y``.
-
-    The refinement descriptors have hundreds of dimensions, where k-d trees are no faster
-    than brute force; one GEMM per block (in ``_REFINE_DTYPE``, after centring both sets on
-    the mean of Y) is the fastest exact-up-to-rounding search. Returns squared distances and
-    indices.
-    """
-    c = Y.mean(dim=0)  # a common shift leaves distances unchanged, shrinks |x|^2
-    Xf = (X - c).to(dtype or _REFINE_DTYPE)
-    Yf = (Y - c).to(dtype or _REFINE_DTYPE)
-    return _blocked_argmin(Xf, Yf, (Xf * Xf).sum(dim=1), (Yf * Yf).sum(dim=1), memory_bytes)
+    def sqnorms(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``|D[x]|^2`` of the rows (all when None), at ``O(n min(k, d) k)``."""
+        P = self.P if rows is None else self.P[rows]
+        if self.C is None:
+            return (P * P).sum(dim=1)
+        if self.C.shape[1] < self.C.shape[0]:  # d < k: the explicit rows are cheaper
+            D = P @ self.C
+            return (D * D).sum(dim=1)
+        return ((P @ (self.C @ self.C.T)) * P).sum(dim=1)
 
 
 def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torch.Tensor,
@@ -641,55 +621,96 @@ def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torc
     return best_d, best_i
 
 
-def _nn_l2_factored(Ps: torch.Tensor, Cs: torch.Tensor, Pt: torch.Tensor, Ct: torch.Tensor,
-                    memory_bytes: int = 256 * 2**20) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`_nn_l2` of ``X = Ps @ Cs`` against ``Y = Pt @ Ct`` through the k-dimensional
-    factors: ``x.y = Ps(x) (Cs Ct^T) Pt(y)^T``, so the big product has inner dimension k
-    (eigenpairs, 100) instead of the descriptor's (landmarks x times, 240)."""
-    Y = Pt @ Ct
-    yy = (Y * Y).sum(dim=1)
-    X = Ps @ Cs
-    xx = (X * X).sum(dim=1)
-    Z = Pt @ (Cs @ Ct.T).T  # [m, k_s]
-    return _blocked_argmin(Ps, Z, xx, yy, memory_bytes)
+def _nn_factors(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
+                memory_bytes: int = 256 * 2**20) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest neighbour in L2 of the rows ``rows`` of ``X``'s descriptor among ``Y``'s.
+
+    ``|x - y|^2 = |x|^2 + |y|^2 - 2 Ps(x) (Cs Ct^T) Pt(y)^T``: the big product has the inner
+    dimension of the factors (eigenmodes, ~60) instead of the descriptor's (landmarks x times,
+    240), and no ``[m, d]`` target descriptor is ever formed. Exact up to rounding (the
+    factors' dtype); returns squared distances and indices (ties: the lowest index within a
+    block).
+    """
+    Ps = X.P if rows is None else X.P[rows]
+    Pt = Y.P
+    if X.C is None and Y.C is None:  # explicit descriptors: centre on Y's mean first
+        c = Pt.mean(dim=0)
+        Ps, Pt = Ps - c, Pt - c
+        return _blocked_argmin(Ps, Pt, (Ps * Ps).sum(1), (Pt * Pt).sum(1), memory_bytes)
+    if X.C is not None and Y.C is not None:
+        Q = Ps @ (X.C @ Y.C.T)
+    elif X.C is not None:
+        Q = Ps @ X.C
+    else:
+        Q = Ps @ Y.C.T
+    return _blocked_argmin(Q, Pt, X.sqnorms(rows), Y.sqnorms(), memory_bytes)
 
 
-def _zero_mode(shape: PreparedShape) -> bool:
-    """Whether the eigenbasis starts with the constant mode (lambda_0 = 0: Neumann)."""
-    return shape.hk.has_constant_mode
+def _refine_factors(shape: PreparedShape, landmarks, dtype: torch.dtype,
+                    log_floor: float | None = None) -> _Factors:
+    """Multi-landmark descriptor of the refinement, ``t_j k_tj(l, x)`` at every other time,
+    centred (constant mode removed), in factored spectral form where the eigenbasis serves
+    every time (else explicit).
+
+    With ``log_floor`` the heat kernel is taken in log scale, ``log max(k_t, floor)``
+    (explicit): by Varadhan's formula ``-4 t log k_t(s, x) -> d(s, x)^2``, so each
+    coordinate behaves like a geodesic distance to a landmark instead of vanishing away
+    from it.
+    """
+    hk = shape.hk
+    if log_floor is None:
+        f = hk.spectral_factors(landmarks, _REFINE_TIMES, dtype=dtype, drop_constant=True,
+                                mode_tol=_MODE_TOL)
+        if f is not None:
+            return _Factors(f[0], f[1])
+        D = heat_kernel_map(hk, landmarks, time_index=_REFINE_TIMES).to(dtype)
+        t = hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
+        # minus the constant mode's term t_j (unit area; the same offset on every shape)
+        return _Factors(D - t.repeat(D.shape[1] // t.numel()))
+    D = heat_kernel_map(hk, landmarks, time_index=_REFINE_TIMES, dtype=dtype).to(dtype)
+    t = hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
+    k = D / t.repeat(D.shape[1] // t.numel())  # undo the t-scaling
+    return _Factors(torch.log(k.clamp_min(log_floor)))
 
 
-def _augment(src, tgt, samples, g, rows, iterations, Dp_full, log_floor=None, Dp_final=None):
-    """Correspondence augmentation on samples: landmarks ``samples -> g``; NN in L2 of the
-    multi-landmark heat kernel map. Intermediate rounds map the samples only; the last one
-    maps the source vertices ``rows`` (samples first; all vertices when None), with the
-    source descriptor ``Dp_final`` (in ``_FINAL_DTYPE``; default ``Dp_full``)."""
-    energy = math.inf
-    out = None
-    for it in range(iterations):
-        if it < iterations - 1:
-            Dq = _refine_descriptor(tgt, g, log_floor)
-            d2, g = _nn_l2(Dp_full[samples], Dq)
-            energy = float(d2.double().mean())
-            continue
-        fs = ft = None
-        if rows is None and log_floor is None and _zero_mode(src) and _zero_mode(tgt):
-            # without the constant mode: the factored form of the centred descriptors
-            fs = src.hk.spectral_factors(samples, _REFINE_TIMES, dtype=_FINAL_DTYPE,
-                                         drop_constant=True)
-            ft = tgt.hk.spectral_factors(g, _REFINE_TIMES, dtype=_FINAL_DTYPE,
-                                         drop_constant=True)
-        if fs is not None and ft is not None:
-            with threads(src.hk.num_threads):
-                d2, out = _nn_l2_factored(fs[0], fs[1], ft[0], ft[1])
-        else:
-            Dq = _refine_descriptor(tgt, g, log_floor, dtype=_FINAL_DTYPE)
-            Dp = Dp_full if Dp_final is None else Dp_final
-            d2, out = _nn_l2(Dp if rows is None else Dp[rows], Dq, dtype=_FINAL_DTYPE)
-        energy = float(d2.double().mean())
+class _Refiner:
+    """Correspondence augmentation (paper Sec. 4) from landmarks ``samples`` on the source.
+
+    Given images ``g`` of the samples on the target, one round maps source vertices by
+    nearest neighbour in L2 of the multi-landmark heat kernel map ``samples -> g``. The source
+    factors are computed once per match (both precisions); each round builds only the
+    target's coefficients (``O(k |samples| J)``) and one factored search.
+    """
+
+    def __init__(self, src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
+                 log_floor: float | None = None) -> None:
+        self.src, self.tgt, self.samples, self.log_floor = src, tgt, samples, log_floor
+        self._src: dict[torch.dtype, _Factors] = {}
+
+    def source(self, dtype: torch.dtype) -> _Factors:
+        if dtype not in self._src:
+            self._src[dtype] = _refine_factors(self.src, self.samples, dtype, self.log_floor)
+        return self._src[dtype]
+
+    def map(self, g: torch.Tensor, rows: torch.Tensor | None,
+            dtype: torch.dtype = _REFINE_DTYPE) -> tuple[torch.Tensor, torch.Tensor]:
+        """Images (and squared descriptor distances) of the source ``rows`` (None: all)."""
+        Ft = _refine_factors(self.tgt, g, dtype, self.log_floor)
+        with threads(self.src.hk.num_threads):
+            return _nn_factors(self.source(dtype), rows, Ft)
+
+    def augment(self, g: torch.Tensor, rows: torch.Tensor | None, iterations: int
+                ) -> tuple[torch.Tensor, torch.Tensor, float]:
+        """``iterations`` rounds from the sample images ``g``: the intermediate ones map the
+        samples only (float32), the last one the source ``rows`` (samples first; all vertices
+        when None) in float64. Returns the last round's images, the sample images fed to it
+        or produced by it, and its mean squared descriptor distance."""
+        for _ in range(iterations - 1):
+            _, g = self.map(g, self.samples)
+        d2, out = self.map(g, rows, _FINAL_DTYPE)
         if rows is not None:
-            g = out[: len(samples)]  # the samples are the first rows: feed their images back
-    return out, g, energy
+            g = out[: self.samples.numel()]  # the samples are the first rows
+        return out, g, float(d2.double().mean())
 
 
 def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
@@ -998,18 +1019,15 @@ def match(
                                                                n_candidates))
                             for lm in _expand(src, tgt, pe, q, pe2 if i < expand_top else None,
                                               use_hks, 0.05 * diam_t)]
-            Dp_full = _refine_descriptor(src, samples, refine_log_floor)
-            Dp_final = (Dp_full if refine_log_floor is not None
-                        else _refine_descriptor(src, samples, None, dtype=_FINAL_DTYPE))
+            refiner = _Refiner(src, tgt, samples, refine_log_floor)
             # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
             # energy go on: a hypothesis that starts far behind does not converge (measured:
             # the energies of converged and failed hypotheses differ 5-50x)
-            Ds = Dp_full[samples]
             stage = []
             for lms0 in hyp:
                 g0, _ = _sample_map(src, tgt, lms0, samples, use_hks, engine)
                 if refine_iterations > 1:
-                    d2, g0 = _nn_l2(Ds, _refine_descriptor(tgt, g0, refine_log_floor))
+                    d2, g0 = refiner.map(g0, samples)
                     e1 = float(d2.double().mean())
                 else:
                     e1 = 0.0
@@ -1027,9 +1045,7 @@ def match(
                 hypotheses.append((lms0, e1, float("nan")))
                 hyp_images.append(g0)
             for _, _, lms0, g0 in stage[:keep]:
-                f_rows, g, energy = _augment(src, tgt, samples, g0, rows,
-                                             max(refine_iterations - 1, 1), Dp_full,
-                                             refine_log_floor, Dp_final)
+                f_rows, g, energy = refiner.augment(g0, rows, max(refine_iterations - 1, 1))
                 o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                 results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
                 hypotheses.append((lms0, energy, o))
@@ -1047,8 +1063,7 @@ def match(
                 sig = _symmetry_at(tgt, best["g"], use_hks, engine, n_candidates,
                                    refine_log_floor)
                 if sig is not None:
-                    f_rows, g2, e2 = _augment(src, tgt, samples, sig, rows, refine_iterations,
-                                              Dp_full, refine_log_floor, Dp_final)
+                    f_rows, g2, e2 = refiner.augment(sig, rows, refine_iterations)
                     o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
                     mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
                     hypotheses.append((["mirror of best"], e2, o2))
@@ -1090,8 +1105,7 @@ def match(
                 if r is None:
                     continue
                 if final_map:
-                    r["map"], _, r["energy"] = _augment(src, tgt, samples, r["g"], None, 1,
-                                                        Dp_full, refine_log_floor, Dp_final)
+                    r["map"], _, r["energy"] = refiner.augment(r["g"], None, 1)
                 else:  # internal use (self-symmetry on samples): no dense map
                     r["map"] = None
                 r["landmarks"] = list(r["lms0"]) + [
@@ -1152,9 +1166,7 @@ def _symmetry_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None
     if sym is None:
         return None
     S, G = sym
-    Dp = _refine_descriptor(shape, S, log_floor)[vertices]
-    Dq = _refine_descriptor(shape, G, log_floor)
-    return _nn_l2(Dp, Dq)[1]
+    return _Refiner(shape, shape, S, log_floor).map(G, torch.as_tensor(vertices))[1]
 
 
 def _farthest_feature(V: np.ndarray, feats: np.ndarray, used: Sequence[int]) -> int:
