@@ -499,3 +499,28 @@ def test_torch_input_is_copied_and_keeps_grad():
     mesh.area()
     mesh.face_areas().sum().backward()
     assert V.grad is not None and V.grad.shape == (3, 3)
+
+
+def test_fast_off_reader_matches_trimesh_or_defers(tmp_path):
+    from torchheat.mesh import _load_trimesh, _parse_off
+
+    rng = np.random.default_rng(5)
+    V = rng.standard_normal((40, 3))
+    F = rng.integers(0, 40, (30, 3))
+    body = "".join(f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in V)
+    body += "".join(f"3 {a} {b} {c}\n" for a, b, c in F)
+    plain = tmp_path / "plain.off"
+    plain.write_text("# made by a test\nOFF\n\n40 30 0  # counts\n" + body)
+    fast = _parse_off(plain)
+    assert fast is not None
+    ref = _load_trimesh(plain, "OFF")
+    assert np.array_equal(fast[0], ref[0]) and np.array_equal(fast[1], ref[1])
+    # anything unusual goes to trimesh (and its error messages): colours, quads, a short file
+    for name, text in (
+        ("colour.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2 255 0 0\n"),
+        ("quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n"),
+        ("short.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n"),
+        ("coff.off", "COFF\n3 1 0\n0 0 0 1 1 1 1\n1 0 0 1 1 1 1\n0 1 0 1 1 1 1\n3 0 1 2\n"),
+    ):
+        (tmp_path / name).write_text(text)
+        assert _parse_off(tmp_path / name) is None, name

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -517,7 +517,6 @@ def orientation_score(
 # ------------------------------------------------------------------------------------------
 # the pipeline
 # ------------------------------------------------------------------------------------------
-@dataclass
 class Correspondence:
     """Result of :func:`match` / :func:`symmetry`.
 
@@ -539,16 +538,65 @@ class Correspondence:
         Orientation score of the direct map (+1 preserving), NaN if not tested.
     info : dict
         Timings (s) per stage, the options used and the hypotheses considered.
+
+    Notes
+    -----
+    ``map`` and ``symmetric_map`` may be given as zero-argument callables: the dense map is
+    then computed on first access and kept (the refined pipeline's last round is a dense
+    ``n x m`` search, the most expensive single step on large meshes, so a caller that only
+    needs one of the two maps pays for one). :attr:`has_symmetric_map` tells whether there is
+    a symmetric map without computing it.
     """
 
-    map: torch.Tensor
-    landmarks: list
-    candidates: torch.Tensor
-    scores: torch.Tensor
-    symmetric_map: torch.Tensor | None = None
-    symmetric_landmarks: list | None = None
-    orientation: float = float("nan")
-    info: dict = field(default_factory=dict)
+    def __init__(
+        self,
+        map: torch.Tensor | Callable[[], torch.Tensor],
+        landmarks: list,
+        candidates: torch.Tensor,
+        scores: torch.Tensor,
+        symmetric_map: torch.Tensor | Callable[[], torch.Tensor] | None = None,
+        symmetric_landmarks: list | None = None,
+        orientation: float = float("nan"),
+        info: dict | None = None,
+    ) -> None:
+        self._map = map
+        self._symmetric_map = symmetric_map
+        self.landmarks = landmarks
+        self.candidates = candidates
+        self.scores = scores
+        self.symmetric_landmarks = symmetric_landmarks
+        self.orientation = orientation
+        self.info = {} if info is None else info
+
+    @property
+    def map(self) -> torch.Tensor:
+        if callable(self._map):
+            self._map = self._map()
+        return self._map
+
+    @map.setter
+    def map(self, value: torch.Tensor) -> None:
+        self._map = value
+
+    @property
+    def symmetric_map(self) -> torch.Tensor | None:
+        if callable(self._symmetric_map):
+            self._symmetric_map = self._symmetric_map()
+        return self._symmetric_map
+
+    @symmetric_map.setter
+    def symmetric_map(self, value: torch.Tensor | None) -> None:
+        self._symmetric_map = value
+
+    @property
+    def has_symmetric_map(self) -> bool:
+        """Whether a symmetric map was found (without computing it)."""
+        return self._symmetric_map is not None
+
+    def __repr__(self) -> str:
+        n = "lazy" if callable(self._map) else tuple(self._map.shape)
+        return (f"Correspondence(map={n}, landmarks={len(self.landmarks)}, "
+                f"symmetric={self.has_symmetric_map}, orientation={self.orientation:+.3f})")
 
 
 def _distinct(cands: torch.Tensor, V: np.ndarray, radius: float, limit: int) -> list[int]:
@@ -1104,10 +1152,9 @@ def match(
             for r in (direct, sym):
                 if r is None:
                     continue
-                if final_map:
-                    r["map"], _, r["energy"] = refiner.augment(r["g"], None, 1)
-                else:  # internal use (self-symmetry on samples): no dense map
-                    r["map"] = None
+                # the dense map, computed when first asked for (Correspondence)
+                r["map"] = _dense_final(refiner, r["g"], num_threads, timings) \
+                    if final_map else None
                 r["landmarks"] = list(r["lms0"]) + [
                     (int(a), int(b)) for a, b in zip(samples.tolist(), r["g"].tolist(),
                                                      strict=True)
@@ -1128,6 +1175,20 @@ def match(
               "sym_orientation": None if sym is None else sym.get("orientation"),
               "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks"))},
     )
+
+
+def _dense_final(refiner: _Refiner, g: torch.Tensor, num_threads: int | None,
+                 timings: dict) -> Callable[[], torch.Tensor]:
+    """The refined pipeline's last round over all source vertices, deferred."""
+
+    def compute() -> torch.Tensor:
+        t0 = time.perf_counter()
+        with threads(num_threads):
+            out = refiner.augment(g, None, 1)[0]
+        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
+        return out
+
+    return compute
 
 
 def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
@@ -1225,14 +1286,14 @@ def symmetry(
                          max_features=options.get("max_features", 50))
     options.setdefault("n_candidates", 8)
     corr = match(shape, shape, **options)
-    if corr.symmetric_map is None:
+    if not corr.has_symmetric_map:
         return corr
     return Correspondence(
-        map=corr.symmetric_map,
+        map=corr._symmetric_map,  # still lazy: only the map asked for is computed
         landmarks=corr.symmetric_landmarks,
         candidates=corr.candidates,
         scores=corr.scores,
-        symmetric_map=corr.map,
+        symmetric_map=corr._map,
         symmetric_landmarks=corr.landmarks,
         orientation=float(corr.info.get("sym_orientation", float("nan"))),
         info=corr.info,
