@@ -1199,6 +1199,9 @@ def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -
     return bool(np.mean(np.linalg.norm(V[g] - V[s], axis=1) <= radius) > 0.5)
 
 
+_SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
+
+
 def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int,
                    log_floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The shape's intrinsic (orientation-reversing) self-symmetry on farthest-point samples.
@@ -1211,7 +1214,8 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     if key in cache:
         return cache[key]
     corr = match(shape, shape, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
-                 mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor)
+                 mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
+                 source_landmarks=_SELF_SEEDS)
     out = None
     if corr.symmetric_landmarks is not None and corr.info.get("sym_orientation", 0) < 0:
         lm = corr.symmetric_landmarks[len(corr.info["lms0_sym"]):]
