@@ -237,3 +237,29 @@ def test_bad_config_gives_one_line_error(tmp_path, capsys):
     bad.write_text("name: x\ndataset: scape\nlimt: 3\n")
     assert batch.main([str(bad)]) == 2
     assert "unknown keys" in capsys.readouterr().err
+
+
+def test_roles_share_one_eigensolve_but_not_their_times():
+    import torch
+    import trimesh
+
+    from torchheat import Mesh
+
+    class _Shape:  # the attributes _prepared reads from a datasets.Shape
+        name, path, data = "ico", "", None
+
+        def __init__(self):
+            m = trimesh.creation.icosphere(3)
+            self.mesh = Mesh(m.vertices * [1.0, 0.8, 0.6], m.faces)
+
+    batch.clear_caches()
+    shape = _Shape()
+    src = batch._prepared(shape, "source", {}, {"k": 30})
+    tgt = batch._prepared(shape, "target", {}, {"k": 30})
+    assert src is not tgt and src.hk is not tgt.hk
+    assert np.shares_memory(src.hk._phi_red, tgt.hk._phi_red)  # one eigensolve
+    t_src = src.hk.times.clone()
+    tgt.hk.set_times(t_src * 2)  # what match() does to a target
+    assert torch.equal(src.hk.times, t_src)
+    assert batch._prepared(shape, "source", {}, {"k": 30}) is src  # memoised per role
+    batch.clear_caches()

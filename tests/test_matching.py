@@ -314,7 +314,7 @@ def test_factored_l2_search_equals_brute_force(src_factored, tgt_factored):
     for dt in (torch.float64, torch.float32):
         fx = tm._Factors(Ps.to(dt), Cs.to(dt)) if src_factored else tm._Factors(X.to(dt))
         fy = tm._Factors(Pt.to(dt), Ct.to(dt)) if tgt_factored else tm._Factors(Y.to(dt))
-        d, i = tm._nn_factors(fx, rows, fy, memory_bytes=4 * 250 * 7)  # 7-row blocks
+        d, i = tm._nn_factors(fx, rows, fy, memory_bytes=8 * 250 * 7)  # 7 or 14-row blocks
         if dt == torch.float64:
             assert torch.equal(i, ref_i)
             torch.testing.assert_close(d, ref_d, rtol=1e-9, atol=1e-9 * float(D.max()))

@@ -658,7 +658,7 @@ def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torc
                     memory_bytes: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``min_y xx + yy - 2 x.y`` over the rows of Y, in row blocks of X within the budget."""
     m = Y.shape[0]
-    rows = max(1, int(memory_bytes // max(1, 4 * m)))
+    rows = max(1, int(memory_bytes // max(1, X.element_size() * m)))  # one [rows, m] block
     best_d = torch.empty(X.shape[0], dtype=X.dtype, device=X.device)
     best_i = torch.empty(X.shape[0], dtype=torch.int64, device=X.device)
     for r0 in range(0, X.shape[0], rows):
