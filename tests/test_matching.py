@@ -420,3 +420,45 @@ def test_symmetry_on_real_cat_follows_sym_ground_truth():
     assert (err < 0.1).mean() > 0.9
     assert (m == np.arange(len(m))).mean() < 0.2
     assert corr.orientation < -0.3
+
+
+def test_correspondence_maps_are_computed_once_on_first_access():
+    calls = []
+
+    def make(v):
+        def f():
+            calls.append(v)
+            return torch.full((3,), v)
+        return f
+
+    c = tm.Correspondence(make(1), [(0, 0)], torch.tensor([0]), torch.tensor([0.0]),
+                          symmetric_map=make(2))
+    assert c.has_symmetric_map and calls == []  # nothing computed yet
+    assert c.symmetric_map.tolist() == [2, 2, 2] and calls == [2]
+    assert c.map.tolist() == [1, 1, 1] and c.map.tolist() == [1, 1, 1] and calls == [2, 1]
+    none = tm.Correspondence(torch.arange(3), [], torch.tensor([0]), torch.tensor([0.0]))
+    assert not none.has_symmetric_map and none.symmetric_map is None
+
+
+def test_pruned_search_equals_brute_force(asym_pair):
+    # real descriptors (clustered structure), a near-isometric pair: the dense map of the
+    # refinement by cluster pruning is the brute-force map
+    S, T = asym_pair[0], asym_pair[1]
+    T.hk.set_times(S.hk.times)
+    samples = tm._fps(S, 48)
+    perm = torch.as_tensor(asym_pair[2])  # source vertex i is target vertex perm[i]
+    g = perm[samples]
+    R = tm._Refiner(S, T, samples)
+    Fs = R.source(torch.float64)
+    Ft = tm._refine_factors(T, g, torch.float64)
+    ref_d, ref_i = tm._nn_factors(Fs, None, Ft)
+    assert (ref_i == perm).float().mean() > 0.99  # an isometric copy: the permutation
+    for C in (16, 60, 200):
+        d, i = tm._nn_factors_pruned(Fs, None, Ft, tm._fps(T, C), memory_bytes=2**16)
+        assert torch.equal(i, ref_i)
+        torch.testing.assert_close(d, ref_d, rtol=1e-9, atol=1e-12 * float(Fs.sqnorms().max()))
+    # a perturbed target (not an exact copy): still the same minima
+    Fn = tm._Factors(Ft.P + 1e-3 * torch.randn_like(Ft.P), Ft.C)
+    ref_d, ref_i = tm._nn_factors(Fs, None, Fn)
+    d, i = tm._nn_factors_pruned(Fs, None, Fn, tm._fps(T, 60))
+    assert torch.equal(i, ref_i)
