@@ -21,6 +21,8 @@ Pipeline of :func:`match` (source M with n vertices, target N with m vertices):
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -205,6 +207,8 @@ class PreparedShape:
     features: torch.Tensor
     normals: np.ndarray
     timings: dict = field(default_factory=dict)
+    own_times: torch.Tensor | None = None  # the times it was prepared with (a target's
+    # hk.times become its source's; its self-symmetry is computed at these, once)
     _hks: torch.Tensor | None = None
     _hks_times: torch.Tensor | None = None
 
@@ -312,7 +316,8 @@ def prepare(
     normals = _vertex_normals(mesh)
     t2 = time.perf_counter()
     return PreparedShape(mesh, hk, feats, normals,
-                         {"heat_kernel": t1 - t0, "descriptors": t2 - t1})
+                         {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
+                         own_times=hk.times.clone())
 
 
 def _as_prepared(x, **kw) -> PreparedShape:
@@ -1271,13 +1276,22 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     """The shape's intrinsic (orientation-reversing) self-symmetry on farthest-point samples.
 
     Returns ``(samples, images)`` or None when no orientation-reversing self-map is found.
-    Cached on the PreparedShape (per time samples).
+    Computed at the shape's own times (``own_times``: those it was prepared with, not the
+    ones of the source it is being matched to), so it is computed once per prepared target
+    and reused for every source; cached on the PreparedShape.
     """
-    key = (tuple(shape.hk.times.tolist()), log_floor)
+    own = shape.hk.times if shape.own_times is None else shape.own_times
+    key = (tuple(own.tolist()), log_floor)
     cache = shape.__dict__.setdefault("_sym_cache", {})
     if key in cache:
         return cache[key]
-    corr = match(shape, shape, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
+    view = shape
+    if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
+        view = dataclasses.replace(shape, hk=copy.copy(shape.hk))  # own solver, own times
+        view.hk.set_times(own)
+        if "_fps_cache" in shape.__dict__:
+            view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
+    corr = match(view, view, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS)
     out = None
