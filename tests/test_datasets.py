@@ -328,3 +328,22 @@ def test_default_cache_dir_from_environment(spot_files, tmp_path, monkeypatch):
     assert ds.cache_dir == tmp_path / "envcache"
     assert ds.cache_path(0).parent == tmp_path / "envcache"
     assert os.fspath(ds.cache_path(0)).endswith(".npz")
+
+
+class _Threads(torch.utils.data.Dataset):
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, i):
+        from threadpoolctl import threadpool_info
+
+        blas = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+        return torch.get_num_threads(), max(blas)
+
+
+def test_worker_init_limits_torch_and_blas_threads():
+    from torchheat.datasets import worker_init
+
+    loader = DataLoader(_Threads(), batch_size=1, num_workers=2, collate_fn=collate_list,
+                        worker_init_fn=worker_init)
+    assert [b[0] for b in loader] == [(1, 1), (1, 1)]

@@ -624,14 +624,9 @@ def _run_task(task: PairTask) -> dict[str, Any]:
 
 
 def _worker_init() -> None:
-    import torch
-    from threadpoolctl import threadpool_limits
+    from .datasets import worker_init
 
-    torch.set_num_threads(1)
-    # BLAS (scipy's OpenBLAS, inherited from the parent with all cores) at one thread too:
-    # two workers with two OpenBLAS threads each on two cores made single eigensolves take
-    # 4-8 s instead of 0.3 s (measured on TOSCA 5k: busy-waiting BLAS threads)
-    threadpool_limits(limits=1)
+    worker_init()  # torch and BLAS at one thread (oversubscribed BLAS: eigensolves 10-30x)
     warnings.filterwarnings("ignore", category=UserWarning, module="torchheat.operators")
 
 
