@@ -200,6 +200,10 @@ class PreparedShape:
     hks : torch.Tensor, shape (n, J)
         t-scaled HKS at ``hk.times`` (the augmentation coordinates; recomputed if the times
         change).
+    own_times : torch.Tensor, shape (J,), optional
+        The times the shape was prepared with. :func:`match` gives a target its source's
+        times; the target's self-symmetry (the mirror hypothesis) is computed at these own
+        times instead, once per prepared target, whatever the source.
     """
 
     mesh: Mesh
@@ -550,7 +554,8 @@ class Correspondence:
     then computed on first access and kept (the refined pipeline's last round is a dense
     ``n x m`` search, the most expensive single step on large meshes, so a caller that only
     needs one of the two maps pays for one). :attr:`has_symmetric_map` tells whether there is
-    a symmetric map without computing it.
+    a symmetric map without computing it. Until then the result keeps references to the two
+    prepared shapes.
     """
 
     def __init__(
