@@ -221,6 +221,21 @@ def test_refine_pipeline_recovers_permutation(asym_pair):
     assert all(perm[a] == b for a, b in corr.landmarks)
 
 
+@pytest.mark.parametrize("opts", [{"times": "paper"}, {"refine_log_floor": 1e-3}],
+                         ids=["certified-times", "log-descriptor"])
+def test_refine_pipeline_explicit_descriptors(opts):
+    # the refinement's explicit (non-factored) descriptor path: Chebyshev times or log scale
+    V, F = generic_sphere(3)
+    W, G, perm = moved_copy(V, F, seed=7)
+    times = opts.get("times", "adaptive")
+    S, T = prepare(Mesh(V, F), times=times), prepare(Mesh(W, G), times=times)
+    if times == "paper":
+        assert S.hk.spectral_factors([0], slice(1, None, 2)) is None  # explicit path
+    corr = match(S, T, **{k: v for k, v in opts.items() if k != "times"})
+    assert exact(corr.map, perm) == 1.0
+    assert corr.orientation > 0.9
+
+
 def test_given_landmark_pair(asym_pair):
     S, T, perm = asym_pair
     p = 123
