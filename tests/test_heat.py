@@ -189,6 +189,9 @@ def test_float32_accuracy_is_as_documented(sphere_mesh):
     C = hk.columns(src)
     assert C.dtype == torch.float32
     assert rel_errors(C, ref).max() < 1e-4
+    # denormals are flushed during the float32 recurrence only, not left flushed afterwards
+    tiny = torch.tensor([1e-310], dtype=torch.float64)
+    assert float(tiny * 1.0) != 0.0
 
 
 def test_bad_queries(small_mesh):

@@ -207,11 +207,15 @@ def _flush_denormal(enabled: bool):
     if not enabled:
         yield
         return
-    old = torch.set_flush_denormal(True)
+    # torch.set_flush_denormal returns whether the CPU supports it, not the previous state, and
+    # torch has no getter: restore the default (off). Left on (as this once did), it changed
+    # later float64 work in the process: scipy's cKDTree then crashed on heat-kernel
+    # descriptors whose tiny entries the flag turns into zeros.
+    supported = torch.set_flush_denormal(True)
     try:
         yield
     finally:
-        if not old:
+        if supported:
             torch.set_flush_denormal(False)
 
 
