@@ -54,9 +54,8 @@ def run_one(args: tuple) -> dict:
     corr = torchheat.match(ps, pt, **opts)
     f = corr.map.numpy()
     t2 = time.perf_counter()
-    V, F = T.numpy()
-    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
-                                axis=1).sum()
+    V, _ = T.numpy()
+    area = T.area()
     gs, gt = pr.gt_src.numpy(), pr.gt_tgt.numpy()
     e = np.linalg.norm(V[f[gs]] - V[gt], axis=1) / math.sqrt(area)
     out = {"name": pr.name, "prep": t1 - t0, "match": t2 - t1,

@@ -723,12 +723,12 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     Cost: ``O((n + m) C k)`` for the centres plus the searched pairs.
     """
     Ps = X.P if rows is None else X.P[rows]
-    Pt = Y.P
+    Pt, Pc = Y.P, Y.P[centres]
     Q = Ps @ (X.C @ Y.C.T)  # [n, k_t]: x.y = Q(x) . Pt(y)
-    xx, yy = X.sqnorms(rows), Y.sqnorms()
+    G = Y.C @ Y.C.T  # [k_t, k_t]: y.y' = Pt(y) G Pt(y')^T
+    xx, yy = X.sqnorms(rows), ((Pt @ G) * Pt).sum(dim=1)
     # targets to centres (descriptor space) and the cluster radii
-    Zc = Pt[centres] @ (Y.C @ Y.C.T)
-    dm2, lab = _blocked_argmin(Pt, Zc, yy, yy[centres], memory_bytes)
+    dm2, lab = _blocked_argmin(Pt, Pc @ G, yy, yy[centres], memory_bytes)
     C = centres.numel()
     radius = torch.zeros(C, dtype=Pt.dtype, device=Pt.device).scatter_reduce_(
         0, lab, dm2.sqrt(), reduce="amax")
@@ -739,7 +739,6 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     best_d = torch.empty(n, dtype=Q.dtype, device=Q.device)
     best_i = torch.empty(n, dtype=torch.int64, device=Q.device)
     block = max(1, int(memory_bytes // max(1, 3 * C * Q.element_size())))
-    Pc = Pt[centres]
     slack = 1e-7 * float((xx.max() + yy.max()).sqrt())  # rounding of the expanded form
     for r0 in range(0, n, block):
         q, xb = Q[r0 : r0 + block], xx[r0 : r0 + block]
@@ -778,14 +777,13 @@ def _refine_factors(shape: PreparedShape, landmarks, dtype: torch.dtype,
                                 mode_tol=_MODE_TOL)
         if f is not None:
             return _Factors(f[0], f[1])
-        D = heat_kernel_map(hk, landmarks, time_index=_REFINE_TIMES).to(dtype)
-        t = hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
-        # minus the constant mode's term t_j (unit area; the same offset on every shape)
-        return _Factors(D - t.repeat(D.shape[1] // t.numel()))
     D = heat_kernel_map(hk, landmarks, time_index=_REFINE_TIMES, dtype=dtype).to(dtype)
-    t = hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
-    k = D / t.repeat(D.shape[1] // t.numel())  # undo the t-scaling
-    return _Factors(torch.log(k.clamp_min(log_floor)))
+    tj = hk.times[_REFINE_TIMES].to(D.dtype).to(D.device)
+    t = tj.repeat(D.shape[1] // tj.numel())  # landmark-major layout: t_j per column
+    if log_floor is None:
+        # minus the constant mode's term t_j (unit area; the same offset on every shape)
+        return _Factors(D - t)
+    return _Factors(torch.log((D / t).clamp_min(log_floor)))  # undo the t-scaling first
 
 
 class _Refiner:
