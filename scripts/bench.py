@@ -138,7 +138,8 @@ def scipy_reference_match(V1, F1, V2, F2, k: int = 300, n_times: int = 10):
     """
     from scipy.spatial import cKDTree
 
-    from torchheat.operators import _cotmatrix_scipy, _massmatrix_scipy
+    from torchheat.eigen import cotmatrix_scipy as _cotmatrix_scipy
+    from torchheat.eigen import massmatrix_scipy as _massmatrix_scipy
 
     tm: dict[str, float] = {}
     t0 = time.perf_counter()

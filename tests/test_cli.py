@@ -126,6 +126,22 @@ def test_console_script_subprocess(tmp_path):
     assert len(out.read_text().splitlines()) == len(V)
     res = subprocess.run([*cmd, "--version"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and "torchheat" in res.stdout
+    # the fast exit (os._exit after match/symmetry/demo) keeps the exit status and the output
+    res = subprocess.run([*cmd, "match", str(tmp_path / "missing.off"), str(mesh), "-o",
+                          str(tmp_path / "m.txt")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1 and not (tmp_path / "m.txt").exists()
+    assert res.stderr.strip().count("\n") == 0 and "missing.off: no such file" in res.stderr
+
+
+def test_background_eigensolves_give_the_same_map(pair, matched):
+    # --workers 0 solves in-process; the default (workers, when 2+ CPUs) must not change maps
+    src, tgt, inv, d = pair
+    _, out, _, _ = matched
+    out0 = d / "map_w0.txt"
+    rc = main(["match", str(src), str(tgt), "-o", str(out0), "--threads", "1",
+               "--workers", "0"])
+    assert rc == 0
+    assert np.array_equal(read_map(out0), read_map(out))
 
 
 # ------------------------------------------------------------------------------- bad input

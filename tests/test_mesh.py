@@ -502,7 +502,7 @@ def test_torch_input_is_copied_and_keeps_grad():
 
 
 def test_fast_off_reader_matches_trimesh_or_defers(tmp_path):
-    from torchheat.mesh import _load_trimesh, _parse_off
+    from torchheat.meshio import _load_trimesh, _parse_off
 
     rng = np.random.default_rng(5)
     V = rng.standard_normal((40, 3))

@@ -3,31 +3,58 @@
 After M. Ovsjanikov, Q. Mérigot, F. Mémoli, L. Guibas, "One Point Isometric Matching with the
 Heat Kernel", SGP 2010. Modules, in the order data flows through them:
 
-``mesh`` (Mesh, load_mesh, MeshError) -> ``operators`` (laplacian) -> ``heat`` (HeatKernel)
+``meshio`` (files -> arrays) -> ``mesh`` (Mesh, load_mesh, MeshError) -> ``eigen`` (scipy
+operators and eigensolves, no torch) -> ``operators`` (laplacian) -> ``heat`` (HeatKernel)
 -> ``descriptors`` -> ``matching`` -> ``evaluate`` / ``datasets`` / ``viz`` -> ``cli``.
+
+The names below are imported on first use (PEP 562), so ``import torchheat`` itself does not
+import torch; ``torchheat.match`` and friends do. That lets the command line start its
+eigensolves in worker processes before paying for ``import torch``.
 """
 
-from .heat import HeatKernel, default_times
-from .matching import Correspondence, PreparedShape, match, prepare, symmetry
-from .mesh import Mesh, MeshError, MeshWarning, load_mesh
-from .operators import Laplacian, cotmatrix, laplacian, massmatrix
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "Correspondence",
-    "HeatKernel",
-    "Laplacian",
-    "Mesh",
-    "MeshError",
-    "MeshWarning",
-    "cotmatrix",
-    "default_times",
-    "laplacian",
-    "load_mesh",
-    "massmatrix",
-    "match",
-    "prepare",
-    "PreparedShape",
-    "symmetry",
-]
+_EXPORTS = {
+    "Correspondence": "matching",
+    "HeatKernel": "heat",
+    "Laplacian": "operators",
+    "Mesh": "mesh",
+    "MeshError": "meshio",
+    "MeshWarning": "meshio",
+    "cotmatrix": "operators",
+    "default_times": "heat",
+    "laplacian": "operators",
+    "load_mesh": "mesh",
+    "massmatrix": "operators",
+    "match": "matching",
+    "prepare": "matching",
+    "PreparedShape": "matching",
+    "symmetry": "matching",
+}
+
+__all__ = list(_EXPORTS)
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs (names listed in _EXPORTS)
+    from .heat import HeatKernel, default_times  # noqa: F401
+    from .matching import Correspondence, PreparedShape, match, prepare, symmetry  # noqa: F401
+    from .mesh import Mesh, load_mesh  # noqa: F401
+    from .meshio import MeshError, MeshWarning  # noqa: F401
+    from .operators import Laplacian, cotmatrix, laplacian, massmatrix  # noqa: F401
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'torchheat' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

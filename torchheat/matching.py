@@ -39,6 +39,7 @@ from .descriptors import (
     hks,
     ring_neighbors,
 )
+from .eigen import DEFAULT_EIGENPAIRS
 from .heat import HeatKernel, threads
 from .mesh import Mesh
 
@@ -258,11 +259,12 @@ def prepare(
     *,
     feature_time: float = 0.05,
     max_features: int = 50,
-    k: int = 100,
+    k: int = DEFAULT_EIGENPAIRS,
     rtol: float = 1e-6,
     kind: str = "cotan",
     boundary: str = "neumann",
     hk: HeatKernel | None = None,
+    eigenpairs: tuple | None = None,
     num_threads: int | None = None,
 ) -> PreparedShape:
     """Precompute a shape for matching (heat kernel, HKS, features, normals).
@@ -286,6 +288,9 @@ def prepare(
         Passed to :class:`HeatKernel`.
     hk : HeatKernel, optional
         A ready solver (e.g. rebuilt from a disk cache); ``times`` is then ignored.
+    eigenpairs : (lam, phi), optional
+        The ``k`` eigenpairs of the mesh's operator if already known (shapes (k,), (n, k);
+        e.g. from :class:`torchheat.eigen.EigenWorkers`); skips the eigensolve.
 
     Returns
     -------
@@ -309,7 +314,8 @@ def prepare(
         else:
             adaptive = False
         hk = HeatKernel(mesh, times=times, rtol=rtol, k=k, kind=kind, boundary=boundary,
-                        num_threads=num_threads, method="spectral" if adaptive else "auto")
+                        num_threads=num_threads, method="spectral" if adaptive else "auto",
+                        eigenpairs=eigenpairs)
         if adaptive:
             hk.set_times(hk.adaptive_times())
     t1 = time.perf_counter()

@@ -28,6 +28,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .eigen import cotmatrix_scipy as _cotmatrix_scipy
+from .eigen import massmatrix_scipy as _massmatrix_scipy
 from .mesh import Mesh, MeshError
 
 Kind = Literal["cotan", "fem", "robust"]
@@ -47,28 +49,6 @@ def _arrays(V, F) -> tuple[np.ndarray, np.ndarray]:
     V = V.detach().cpu().numpy() if isinstance(V, torch.Tensor) else np.asarray(V)
     F = F.detach().cpu().numpy() if isinstance(F, torch.Tensor) else np.asarray(F)
     return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
-
-
-def _cotmatrix_scipy(V: np.ndarray, F: np.ndarray) -> sp.csr_matrix:
-    n = V.shape[0]
-    W = sp.csr_matrix((n, n))
-    rows, cols, vals = [], [], []
-    for k in range(3):
-        i, j, o = F[:, (k + 1) % 3], F[:, (k + 2) % 3], F[:, k]
-        e1 = V[i] - V[o]
-        e2 = V[j] - V[o]
-        cross = np.linalg.norm(np.cross(e1, e2), axis=1)
-        cot = np.einsum("ij,ij->i", e1, e2) / np.maximum(cross, 1e-300)
-        rows += [i, j]
-        cols += [j, i]
-        vals += [-0.5 * cot, -0.5 * cot]
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    v = np.concatenate(vals)
-    W = sp.csr_matrix((v, (r, c)), shape=(n, n))
-    W = W - sp.diags(np.asarray(W.sum(axis=1)).ravel())
-    W.sum_duplicates()
-    return W.tocsr()
 
 
 def cotmatrix_intrinsic(lengths, F) -> torch.Tensor:
@@ -112,26 +92,6 @@ def cotmatrix_intrinsic(lengths, F) -> torch.Tensor:
     )
     W = (W - sp.diags(np.asarray(W.sum(axis=1)).ravel())).tocsr()
     return scipy_to_torch(W)
-
-
-def _face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-
-
-def _massmatrix_scipy(V: np.ndarray, F: np.ndarray, kind: str) -> sp.csr_matrix:
-    n = V.shape[0]
-    fa = _face_areas(V, F)
-    if kind == "lumped":
-        d = np.bincount(F.ravel(), weights=np.repeat(fa / 3.0, 3), minlength=n)
-        return sp.diags(d).tocsr()
-    if kind == "consistent":
-        r = np.concatenate([F[:, a] for a in range(3) for _ in range(3)])
-        c = np.concatenate([F[:, b] for _ in range(3) for b in range(3)])
-        w = np.concatenate(
-            [fa / 6.0 if a == b else fa / 12.0 for a in range(3) for b in range(3)]
-        )
-        return sp.csr_matrix((w, (r, c)), shape=(n, n))
-    raise ValueError(f"unknown mass kind {kind!r}; use 'lumped' or 'consistent'")
 
 
 def scipy_to_torch(M: sp.spmatrix, dtype: torch.dtype = torch.float64) -> torch.Tensor:
