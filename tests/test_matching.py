@@ -477,3 +477,49 @@ def test_pruned_search_equals_brute_force(asym_pair):
     ref_d, ref_i = tm._nn_factors(Fs, None, Fn)
     d, i = tm._nn_factors_pruned(Fs, None, Fn, tm._fps(T, 60))
     assert torch.equal(i, ref_i)
+
+
+def test_background_self_symmetry_gives_the_same_maps(monkeypatch):
+    # the target's self-symmetry computed in a background thread (default when torch may use
+    # 2+ threads) must not change either map; torch's thread count is restored afterwards
+    V, F = mirror_mesh(3)
+    W, G, perm = moved_copy(V, F, seed=11)
+    ran_in: list[str] = []
+    orig = tm._self_symmetry
+
+    def spy(*args, **kw):
+        import threading
+
+        if not tm._self_symmetry_cached(args[0], args[4]):  # computed, not a cache hit
+            ran_in.append(threading.current_thread().name)
+        return orig(*args, **kw)
+
+    monkeypatch.setattr(tm, "_self_symmetry", spy)
+    out = {}
+    for bg in (False, True):
+        with tm.threads(2):
+            S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
+            corr = match(S, T, background=bg)
+            out[bg] = (corr.map, corr.symmetric_map)
+            assert torch.get_num_threads() == 2
+    assert ran_in == ["MainThread", "torchheat-background"]
+    assert torch.equal(out[False][0], out[True][0])
+    assert out[True][1] is not None and torch.equal(out[False][1], out[True][1])
+    assert exact(out[True][0], perm) >= 0.95
+
+
+def test_background_reraises_and_restores_threads():
+    def boom():
+        raise RuntimeError("in the background")
+
+    with tm.threads(2):
+        bg = tm._Background()
+        bg.start(boom)
+        assert torch.get_num_threads() == 1  # halved while the background runs
+        with pytest.raises(RuntimeError, match="in the background"):
+            bg.wait()
+        assert torch.get_num_threads() == 2
+        with tm.threads(1):
+            one = tm._Background()
+            one.start(boom)  # one thread: nothing to split, runs nothing in the background
+            one.wait()

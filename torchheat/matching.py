@@ -21,9 +21,11 @@ Pipeline of :func:`match` (source M with n vertices, target N with m vertices):
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -936,6 +938,7 @@ def match(
     orientation_samples: int = 128,
     num_threads: int | None = None,
     final_map: bool = True,
+    background: bool = True,
 ) -> Correspondence:
     """Dense correspondence between two near-isometric shapes from one point.
 
@@ -1015,6 +1018,14 @@ def match(
         a float uses ``log max(k_t, floor)`` instead (Varadhan: distance-like coordinates).
     num_threads : int, optional
         torch threads.
+    background : bool
+        (``method="refine"``) Compute the target's self-symmetry (the mirror hypothesis; once
+        per prepared target) in a background thread while the hypotheses are refined, each
+        side with half of torch's threads; only when torch may use two or more threads
+        (measured: the SCAPE pair's match 2.05 s -> 1.3 s on two cores). The result is the
+        same either way.
+    final_map : bool
+        Build the dense maps (computed on first access of ``.map``); False leaves them None.
 
     Returns
     -------
@@ -1040,7 +1051,7 @@ def match(
         raise ValueError("landmarks must be >= 1")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    with threads(num_threads):
+    with threads(num_threads), _Background() as bg:
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
@@ -1048,6 +1059,9 @@ def match(
                 and torch.equal(tgt.hk.times, src.hk.times)):
             tgt.hk.set_times(src.hk.times)  # descriptors must share the time samples
         timings["prepare"] = time.perf_counter() - t_start
+        if (background and method == "refine" and mirror_hypothesis and tgt is not src
+                and not _self_symmetry_cached(tgt, refine_log_floor)):
+            bg.start(_self_symmetry, tgt, use_hks, engine, n_candidates, refine_log_floor)
         Vs, _ = src.mesh.numpy()
         Vt, _ = tgt.mesh.numpy()
         diam_t = float(np.linalg.norm(Vt.max(0) - Vt.min(0)))
@@ -1186,6 +1200,7 @@ def match(
             # images only) is the other hypothesis; the orientation test tells them apart.
             mirror = None
             if mirror_hypothesis and tgt is not src:
+                bg.wait()  # the self-symmetry, if it was computed in the background
                 sig = _symmetry_at(tgt, best["g"], use_hks, engine, n_candidates,
                                    refine_log_floor)
                 if sig is not None:
@@ -1280,6 +1295,67 @@ def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
 
 
+class _Background:
+    """At most one function run in a background thread, torch's threads split meanwhile.
+
+    A context manager, inert until :meth:`start`; :meth:`wait` joins (re-raising the
+    function's exception) and gives the calling thread its threads back; leaving the context
+    waits too. torch's thread count is per OS thread under OpenMP, so each side sets its own.
+    """
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._exc: BaseException | None = None
+        self._threads = 0
+
+    def start(self, fn: Callable[..., object], *args: object) -> None:
+        nt = torch.get_num_threads()
+        if nt < 2 or self._thread is not None:
+            return  # nothing to split (e.g. one-thread batch workers): stay sequential
+        half = nt // 2
+        self._threads = nt
+
+        def run() -> None:
+            try:
+                torch.set_num_threads(nt - half)
+                fn(*args)
+            except BaseException as exc:  # re-raised by wait()
+                self._exc = exc
+
+        torch.set_num_threads(half)
+        self._thread = threading.Thread(target=run, daemon=True, name="torchheat-background")
+        self._thread.start()
+
+    def wait(self) -> None:
+        if self._thread is None:
+            return
+        self._thread.join()
+        self._thread = None
+        torch.set_num_threads(self._threads)
+        if self._exc is not None:
+            exc, self._exc = self._exc, None
+            raise exc
+
+    def __enter__(self) -> _Background:
+        return self
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        if exc_type is None:
+            self.wait()
+            return
+        with contextlib.suppress(BaseException):  # the exception in flight wins
+            self.wait()
+
+
+def _sym_key(shape: PreparedShape, log_floor: float | None) -> tuple:
+    own = shape.hk.times if shape.own_times is None else shape.own_times
+    return (tuple(own.tolist()), log_floor)
+
+
+def _self_symmetry_cached(shape: PreparedShape, log_floor: float | None) -> bool:
+    return _sym_key(shape, log_floor) in shape.__dict__.get("_sym_cache", {})
+
+
 def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int,
                    log_floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The shape's intrinsic (orientation-reversing) self-symmetry on farthest-point samples.
@@ -1290,7 +1366,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     and reused for every source; cached on the PreparedShape.
     """
     own = shape.hk.times if shape.own_times is None else shape.own_times
-    key = (tuple(own.tolist()), log_floor)
+    key = _sym_key(shape, log_floor)
     cache = shape.__dict__.setdefault("_sym_cache", {})
     if key in cache:
         return cache[key]
