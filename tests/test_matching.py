@@ -523,3 +523,17 @@ def test_background_reraises_and_restores_threads():
             one = tm._Background()
             one.start(boom)  # one thread: nothing to split, runs nothing in the background
             one.wait()
+
+
+def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
+    V, F = generic_sphere(2, seed=4)
+    S = prepare(Mesh(V, F))
+    D1 = tm._descriptor(S, [3], True)
+    assert tm._descriptor(S, [3], True) is D1  # memoised
+    assert torch.equal(D1, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
+    S.hk.set_times(S.hk.times * 2)  # new times: a new descriptor, not the stale one
+    D2 = tm._descriptor(S, [3], True)
+    assert D2 is not D1 and not torch.allclose(D1, D2)
+    assert torch.equal(D2, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
+    match(S, S)
+    assert "_desc_cache" not in S.__dict__

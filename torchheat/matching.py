@@ -353,10 +353,34 @@ def _as_prepared(x, **kw) -> PreparedShape:
 # ------------------------------------------------------------------------------------------
 # scoring and maps
 # ------------------------------------------------------------------------------------------
+# Descriptors of the landmark sets a match asks for, memoised per shape: the same one-point
+# descriptor is wanted by the candidate scoring, the twin and ambiguity tests, every expansion
+# and every hypothesis seeded from it (94 of 146 computations on a SCAPE pair were repeats).
+_DESC_CACHE_BYTES = 64 * 2**20
+_DESC_LOCK = threading.Lock()  # the background self-symmetry may share the shape's cache
+
+
 def _descriptor(shape: PreparedShape, landmarks, use_hks: bool, columns=None) -> torch.Tensor:
+    """``[n, L J (+ J)]`` HKM (+ HKS) of ``landmarks``; read-only (it may be cached)."""
+    key = None
+    if columns is None:
+        key = (tuple(int(v) for v in np.atleast_1d(np.asarray(landmarks))), bool(use_hks),
+               tuple(shape.hk.times.tolist()))
+        with _DESC_LOCK:
+            hit = shape.__dict__.get("_desc_cache", {}).get(key)
+        if hit is not None:
+            return hit
     D = heat_kernel_map(shape.hk, landmarks, columns)
     if use_hks:
         D = torch.cat([D, shape.hks.to(D.dtype)], dim=1)
+    if key is not None:
+        limit = _DESC_CACHE_BYTES // max(1, D.element_size() * D.numel())
+        with _DESC_LOCK:
+            cache = shape.__dict__.setdefault("_desc_cache", {})
+            while cache and len(cache) >= limit:
+                cache.pop(next(iter(cache)))  # oldest first
+            if limit > 0:
+                cache[key] = D
     return D
 
 
@@ -1264,6 +1288,9 @@ def match(
                 ]
             orient = direct["orientation"]
             timings["dense_map"] = time.perf_counter() - t0
+    for shape in (src, tgt):  # the memo serves one call; do not hold ~64 MB per shape
+        with _DESC_LOCK:
+            shape.__dict__.pop("_desc_cache", None)
     timings["total"] = time.perf_counter() - t_start
     return Correspondence(
         map=direct["map"],
