@@ -14,6 +14,8 @@ from torchheat import HeatKernel, Mesh, laplacian
 from torchheat.eigen import EigenWorkers, cotan_eigenpairs, eigenpairs
 
 pytestmark = pytest.mark.filterwarnings("ignore:Sparse")
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"),
+                           reason="EigenWorkers fork only on Linux")
 
 
 def test_cotan_eigenpairs_identical_to_heat_kernel():
@@ -44,6 +46,7 @@ def _same_up_to_sign(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
     return bool(np.abs(a - b * s).max() <= tol)
 
 
+@linux
 def test_workers_give_the_in_process_eigenpairs():
     meshes = [generic_sphere(4, seed=s) for s in (1, 2, 3)]  # 3 meshes, 2 workers
     with EigenWorkers(meshes, k=30, processes=2) as bg:
@@ -57,6 +60,7 @@ def test_workers_give_the_in_process_eigenpairs():
         assert _same_up_to_sign(res[1], phi, 1e-7)
 
 
+@linux
 def test_workers_off_or_failing_return_none():
     V, F = generic_sphere(2)
     with EigenWorkers([(V, F)], k=5, processes=0) as bg:
@@ -69,6 +73,7 @@ def test_workers_off_or_failing_return_none():
     assert bg.get(7) is None  # unknown index
 
 
+@linux
 def test_worker_killed_returns_none():
     V, F = generic_sphere(5)  # 10k vertices: still solving when killed
     with EigenWorkers([(V, F)], k=100, processes=1) as bg:
