@@ -81,6 +81,15 @@ def test_worker_killed_returns_none():
         assert bg.get(0) is None
 
 
+@linux
+def test_worker_timeout_stops_it_and_returns_none():
+    V, F = generic_sphere(5)  # 10k vertices, k = 100: ~1 s, far above the 0.05 s allowed
+    with EigenWorkers([(V, F)], k=100, processes=1, timeout=0.05) as bg:
+        assert bg.get(0) is None and "timed out" in bg.errors[0]
+        bg._procs[0].join(timeout=5)
+        assert not bg._procs[0].is_alive()
+
+
 def test_package_and_eigen_import_without_torch():
     # the command line starts its workers before torch is imported: keep these torch-free
     code = ("import sys, torchheat, torchheat.eigen, torchheat.meshio; "

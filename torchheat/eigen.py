@@ -291,6 +291,11 @@ class EigenWorkers:
         Eigenpairs per mesh.
     processes : int, optional
         Worker processes (0: none).
+    timeout : float, optional
+        Seconds :meth:`get` waits for a worker's next result before it stops that worker and
+        returns None (the caller then solves in-process): a guard against a worker stuck at
+        fork, never expected to fire. Default ``120 + 1e-3 * n`` for the largest mesh (one
+        60k-vertex solve takes ~7 s).
 
     Examples
     --------
@@ -303,8 +308,10 @@ class EigenWorkers:
     """
 
     def __init__(self, meshes: Sequence[tuple[Any, Any]], k: int = 100,
-                 processes: int | None = None) -> None:
+                 processes: int | None = None, timeout: float | None = None) -> None:
         self.k = int(k)
+        n_max = max((len(V) for V, _ in meshes), default=0)
+        self.timeout = 120.0 + 1e-3 * n_max if timeout is None else float(timeout)
         self._results: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
         self._procs: list[Any] = []
         self._conns: list[Any] = []
@@ -360,11 +367,15 @@ class EigenWorkers:
         conn = self._conns[w]
         while i not in self._results:
             try:
+                if not conn.poll(self.timeout):  # stuck (or far slower than expected)
+                    self._procs[w].terminate()
+                    raise EOFError
                 j, status, a, b = conn.recv()
             except (EOFError, OSError):  # the worker died: solve in-process
                 for m, owner in self._owner.items():
                     if owner == w:
                         self._results.setdefault(m, None)
+                self.errors.setdefault(i, "worker stopped or timed out")
                 break
             if status == "ok":
                 self._results[j] = (a, b)
