@@ -156,15 +156,15 @@ def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
 
 
 def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
-                      check: Callable[[list[Any]], None] | None = None,
-                      ) -> tuple[list[Any], list[Any], dict[str, float]]:
+                      check: Callable[[list[Any]], Any] | None = None,
+                      ) -> tuple[list[Any], list[Any], Any, dict[str, float]]:
     """Read ``paths``, solve their eigenpairs in background processes, prepare the shapes.
 
     The files are read with numpy only; the eigensolves (the costliest step of preparing a
     shape) start in worker processes (:class:`torchheat.eigen.EigenWorkers`, ``--workers``)
     *before* torch is imported, so that ``import torch`` and both solves share the cores.
     ``check(meshes)`` runs on the validated meshes before anything is prepared. Returns the
-    meshes, the prepared shapes and timings.
+    meshes, the prepared shapes, what ``check`` returned and timings.
     """
     from .eigen import DEFAULT_EIGENPAIRS, EigenWorkers
     from .meshio import read_arrays
@@ -177,8 +177,7 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
         meshes = []
         for (V, F), p in zip(arrays, paths, strict=True):
             meshes.append(Mesh(V, F, name=str(p)))
-        if check is not None:
-            check(meshes)
+        checked = check(meshes) if check is not None else None
         from .matching import prepare
 
         t1 = time.perf_counter()
@@ -188,8 +187,8 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     t2 = time.perf_counter()
     where = f"in {n_bg} background process{'es' if n_bg != 1 else ''}" if n_bg \
         else "in-process"
-    return meshes, prepared, {"read + import torch": t1 - t0,
-                              f"prepare (eigensolves {where})": t2 - t1}
+    return meshes, prepared, checked, {"read + import torch": t1 - t0,
+                                       f"prepare (eigensolves {where})": t2 - t1}
 
 
 def _timings(t_prep: dict[str, float], corr: Any) -> dict[str, float]:
@@ -267,12 +266,9 @@ def _cmd_match(args: argparse.Namespace) -> int:
               "method 'refine' places its own landmarks", file=sys.stderr)
 
     t_start = time.perf_counter()
-    lm: list[Any] = []
-    (source, target), (ps, pt), t_prep = _load_and_prepare(
+    (source, target), (ps, pt), landmark, t_prep = _load_and_prepare(
         [args.source, args.target], args,
-        check=lambda ms: lm.append(_check_landmark(args.landmark, ms[0], ms[1], args.source,
-                                                   args.target)))
-    landmark = lm[0]
+        check=lambda ms: _check_landmark(args.landmark, ms[0], ms[1], args.source, args.target))
 
     from .matching import match
 
@@ -312,12 +308,9 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
     out = _check_output(Path(args.output), "map")
     png = _check_output(Path(args.png), "PNG") if args.png else None
     t_start = time.perf_counter()
-    lm: list[Any] = []
-    (mesh,), (shape,), t_prep = _load_and_prepare(
+    (mesh,), (shape,), landmark, t_prep = _load_and_prepare(
         [args.mesh], args,
-        check=lambda ms: lm.append(_check_landmark(args.landmark, ms[0], ms[0], args.mesh,
-                                                   args.mesh)))
-    landmark = lm[0]
+        check=lambda ms: _check_landmark(args.landmark, ms[0], ms[0], args.mesh, args.mesh))
     if isinstance(landmark, tuple):
         raise CLIError("symmetry takes --landmark P (one source vertex) only")
 
@@ -360,7 +353,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     src_path, tgt_path = DATA / "bs_rest.obj", DATA / "bs_smile.obj"
 
     t0 = time.perf_counter()
-    (source, target), (ps, pt), t_prep = _load_and_prepare([str(src_path), str(tgt_path)], args)
+    (source, target), (ps, pt), _, t_prep = _load_and_prepare([str(src_path), str(tgt_path)],
+                                                              args)
 
     from .matching import match
 
