@@ -615,8 +615,9 @@ def run() -> None:
     argv = sys.argv[1:]
     rc = main(argv)
     if argv and argv[0] in _FAST_EXIT:
-        sys.stdout.flush()
-        sys.stderr.flush()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError):  # e.g. a closed pipe (torchheat ... | head)
+                stream.flush()
         os._exit(rc)
     sys.exit(rc)
 
