@@ -204,3 +204,14 @@ def test_bad_queries(small_mesh):
         HeatKernel(small_mesh, method="magic")
     with pytest.raises(ValueError, match="spectral"):
         HeatKernel(laplacian(small_mesh, kind="fem"), method="chebyshev")
+
+
+def test_given_eigenpairs_of_another_mesh_are_refused():
+    # a stale cache or another mesh's eigenpairs (same vertex count) must not silently serve
+    A, B = Mesh(*generic_sphere(3, seed=1)), Mesh(*generic_sphere(3, seed=2))
+    hk = HeatKernel(A, k=20, method="spectral")
+    own = (hk.eigenvalues, hk.eigenvectors)
+    again = HeatKernel(A, k=20, method="spectral", eigenpairs=own)  # its own: accepted
+    assert torch.equal(again.eigenvalues, hk.eigenvalues)
+    with pytest.raises(ValueError, match="not those of this operator"):
+        HeatKernel(B, k=20, method="spectral", eigenpairs=own)

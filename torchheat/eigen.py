@@ -213,6 +213,9 @@ def cotan_eigenpairs(V: Any, F: Any, k: int = 100) -> tuple[np.ndarray, np.ndarr
 
     The same operator as ``torchheat.laplacian(mesh)`` and the same solve as
     ``HeatKernel(mesh, k=k)``, from plain arrays and without torch (tested to be identical).
+    The arrays are not validated: pass those of a valid mesh (:func:`torchheat.meshio.
+    read_arrays` output is checked by :class:`~torchheat.mesh.Mesh`, and eigenpairs handed to
+    :class:`~torchheat.heat.HeatKernel` are checked against its operator).
 
     Parameters
     ----------
@@ -319,7 +322,8 @@ class EigenWorkers:
         self.errors: dict[int, str] = {}
         n = len(meshes)
         if processes is None:
-            processes = min(n, _available_cpus()) if _available_cpus() >= 2 else 0
+            cpus = _available_cpus()
+            processes = min(n, cpus) if cpus >= 2 else 0
         processes = max(0, min(int(processes), n))
         if processes == 0 or not sys.platform.startswith("linux"):
             return
