@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
 from conftest import ROOT, generic_sphere
 
-from torchheat import HeatKernel, Mesh, laplacian
-from torchheat.eigen import EigenWorkers, cotan_eigenpairs, eigenpairs
+from torchheat import HeatKernel, Mesh, eigen, laplacian
+from torchheat.eigen import EigensolverError, EigenWorkers, cotan_eigenpairs, eigenpairs
+from torchheat.heat import _check_eigenpairs
 
 pytestmark = pytest.mark.filterwarnings("ignore:Sparse")
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"),
@@ -98,3 +102,140 @@ def test_package_and_eigen_import_without_torch():
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0, res.stderr
+
+
+# ------------------------------------------------------------------------------------------
+# robustness: missed multiplicities, failures of each path and their fallbacks
+# ------------------------------------------------------------------------------------------
+def _periodic_grid(N: int = 20):
+    """5-point Laplacian of the N x N periodic unit square (the flat torus) and its mass."""
+    h = 1.0 / N
+    T = sp.diags([2.0 * np.ones(N), -np.ones(N - 1), -np.ones(N - 1)], [0, 1, -1]).tolil()
+    T[0, N - 1] = T[N - 1, 0] = -1.0
+    eye = sp.identity(N)
+    W = (sp.kron(T, eye) + sp.kron(eye, T)).tocsr()
+    A = sp.diags(np.full(N * N, h * h)).tocsr()
+    s = np.sin(np.pi * np.arange(N) / N) ** 2
+    exact = np.sort(((4.0 / h**2) * (s[:, None] + s[None, :])).ravel())
+    return W, A, exact
+
+
+@pytest.mark.parametrize("k", [30, 60, 100])
+def test_multiple_eigenvalues_are_all_found(k):
+    # the flat torus has eigenvalues of multiplicity 8; plain Lanczos missed two copies of
+    # 191.94 at k = 30 and k = 60 (every later mode shifted: a silently wrong heat kernel)
+    W, A, exact = _periodic_grid(20)
+    lam, phi = eigenpairs(W, A, k)
+    assert np.allclose(lam, exact[:k], rtol=1e-9, atol=1e-8)
+    assert np.allclose(phi.T @ (A @ phi), np.eye(k), atol=1e-8)
+
+
+def _reference(W, A, k):
+    return scipy.linalg.eigh(W.toarray(), A.toarray(), eigvals_only=True)[:k]
+
+
+def _mesh_problem():
+    V, F = generic_sphere(3, seed=7)  # 642 vertices, k = 20: the ARPACK path
+    return laplacian(Mesh(V, F)).reduced()
+
+
+def test_arpack_no_convergence_falls_back_to_a_random_start(monkeypatch):
+    W, A = _mesh_problem()
+    real, calls = sla.eigsh, []
+
+    def flaky(*args, **kw):
+        calls.append(kw.get("ncv"))
+        if len(calls) == 1:
+            raise sla.ArpackNoConvergence("forced", np.zeros(0), np.zeros((W.shape[0], 0)))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(eigen.sla, "eigsh", flaky)
+    lam, _ = eigenpairs(W, A, 20)
+    assert calls[1] == 41  # the second attempt: 2k + 1 basis
+    assert np.allclose(lam, np.maximum(_reference(W, A, 20), 0), rtol=1e-9, atol=1e-9)
+
+
+def test_arpack_failing_twice_falls_back_to_lobpcg(monkeypatch):
+    W, A = _mesh_problem()
+
+    def broken(*args, **kw):
+        raise sla.ArpackNoConvergence("forced", np.zeros(0), np.zeros((W.shape[0], 0)))
+
+    monkeypatch.setattr(eigen.sla, "eigsh", broken)
+    used = []
+    real = sla.lobpcg
+    monkeypatch.setattr(eigen.sla, "lobpcg", lambda *a, **kw: used.append(1) or real(*a, **kw))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no dense fallback: LOBPCG's result
+        lam, phi = eigenpairs(W, A, 20)
+    assert used
+    assert np.allclose(lam, np.maximum(_reference(W, A, 20), 0), rtol=1e-8, atol=1e-8)
+    assert np.allclose(phi.T @ (A @ phi), np.eye(20), atol=1e-7)
+
+
+def test_singular_factorisation_retries_with_another_shift(monkeypatch):
+    W, A = _mesh_problem()
+    real, shifts = sla.splu, []
+
+    def singular_once(M):
+        shifts.append(M.diagonal().min())
+        if len(shifts) == 1:
+            raise RuntimeError("Factor is exactly singular")
+        return real(M)
+
+    monkeypatch.setattr(eigen.sla, "splu", singular_once)
+    lam, _ = eigenpairs(W, A, 20)
+    assert len(shifts) == 2
+    assert np.allclose(lam, np.maximum(_reference(W, A, 20), 0), rtol=1e-9, atol=1e-9)
+
+
+def test_nan_results_fall_back_and_total_failure_is_a_clear_error(monkeypatch):
+    W, A = _mesh_problem()
+
+    def nan_eigsh(op, k, **kw):
+        return np.full(k, np.nan), np.full((op.shape[0], k), np.nan)
+
+    monkeypatch.setattr(eigen.sla, "eigsh", nan_eigsh)
+    monkeypatch.setattr(eigen.sla, "lobpcg", nan_eigsh)
+    # small problem: the dense solve, with a warning that says why
+    with pytest.warns(RuntimeWarning, match="non-finite result"):
+        lam, _ = eigenpairs(W, A, 20)
+    assert np.allclose(lam, np.maximum(_reference(W, A, 20), 0), rtol=1e-9, atol=1e-9)
+    # above the dense limit: an error, never a wrong basis
+    monkeypatch.setattr(eigen, "DENSE_FALLBACK", 100)
+    with pytest.raises(EigensolverError, match="eigensolve failed.*non-finite"):
+        eigenpairs(W, A, 20)
+
+
+def test_non_finite_operator_is_refused_with_the_mesh_name():
+    W, A = _mesh_problem()
+    W = W.tolil()
+    W[3, 3] = np.inf
+    with pytest.raises(EigensolverError, match="non-finite"):
+        eigenpairs(W.tocsr(), A, 20)
+
+
+def test_eigensolver_error_names_the_mesh(monkeypatch):
+    V, F = generic_sphere(3, seed=7)
+    monkeypatch.setattr(eigen, "DENSE_FALLBACK", 100)
+    monkeypatch.setattr(eigen.sla, "splu", lambda M: (_ for _ in ()).throw(
+        RuntimeError("Factor is exactly singular")))
+    with pytest.raises(EigensolverError, match=r"^bunny\.off: the eigensolve failed"):
+        HeatKernel(Mesh(V, F, name="bunny.off"), k=20, method="spectral")
+
+
+def test_eigenpair_check_is_scale_aware():
+    # the check is the solver's backward error: a correct solve passes on any mesh size and
+    # for the constant mode (once refused on every 60k mesh), a perturbed one does not
+    V, F = generic_sphere(4, seed=11)
+    M = Mesh(V, F)
+    hk = HeatKernel(M, k=40, method="spectral")
+    lam, phi = hk.eigenvalues.numpy(), hk.eigenvectors.numpy()
+    W, A = laplacian(M).reduced()
+    _check_eigenpairs(W, A, lam, phi, M)  # accepted
+    # eigenvalues off by one part in 1e6 (a differently normalised area): refused
+    with pytest.raises(ValueError, match="backward error"):
+        _check_eigenpairs(W, A, lam * (1 + 1e-6), phi, M)
+    # the same mesh scaled 1000x and re-normalised gives the same operator: accepted
+    W2, A2 = laplacian(Mesh(V * 1000.0, F)).reduced()
+    _check_eigenpairs(W2, A2, lam, phi, M)
