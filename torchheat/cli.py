@@ -162,6 +162,16 @@ def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
             fh.write("\n")
 
 
+def _plausible(V: Any, F: Any) -> bool:
+    """Whether ``(V, F)`` may be a triangle mesh (faces, in range); :class:`Mesh` checks the
+    rest. Implausible arrays are never sent to an eigensolve worker (a doomed solve)."""
+    import numpy as np
+
+    F = np.asarray(F)
+    return bool(F.ndim == 2 and F.shape[1] == 3 and F.size > 0
+                and np.issubdtype(F.dtype, np.integer) and F.min() >= 0 and F.max() < len(V))
+
+
 def _largest_piece(V: Any, F: Any) -> Any:
     """The vertices ``Mesh(V, F, largest_component=True)`` keeps, computed without torch.
 
@@ -172,12 +182,9 @@ def _largest_piece(V: Any, F: Any) -> Any:
 
     from .topology import largest_component
 
-    F = np.asarray(F)
-    n = len(V)
-    if (F.ndim != 2 or F.shape[1] != 3 or F.size == 0 or not np.issubdtype(F.dtype, np.integer)
-            or F.min() < 0 or F.max() >= n):
+    if not _plausible(V, F):
         return None
-    return largest_component(F.astype(np.int64, copy=False), n)
+    return largest_component(np.asarray(F).astype(np.int64, copy=False), len(V))
 
 
 def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
@@ -206,7 +213,8 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     pieces = [_largest_piece(V, F) if largest else None for V, F in arrays]
     solved = [(V, F) if k is None else (np.asarray(V)[k], restrict_faces(np.asarray(F), k, len(V)))
               for (V, F), k in zip(arrays, pieces, strict=True)]
-    with EigenWorkers(solved, k=DEFAULT_EIGENPAIRS, processes=args.workers) as bg:
+    workers = args.workers if all(_plausible(V, F) for V, F in arrays) else 0  # Mesh refuses
+    with EigenWorkers(solved, k=DEFAULT_EIGENPAIRS, processes=workers) as bg:
         from .mesh import Mesh  # imports torch, while the workers solve
 
         meshes = []

@@ -638,10 +638,11 @@ class Correspondence:
         Timings (s) per stage, the options used and the hypotheses considered.
     source_vertex_map, target_vertex_map : torch.Tensor or None
         int64, shapes (n_source,) and (n_target,): the index in the input file of every
-        vertex of the matched meshes (their :attr:`Mesh.vertex_map`); None: the same
-        numbering.
+        vertex of the matched meshes (their :attr:`Mesh.vertex_map`), for a mesh that
+        ``largest_component=True`` cut; None for one that kept all its vertices.
     n_source_input : int or None
-        Number of vertices of the source file (:attr:`Mesh.n_input_vertices`).
+        Number of vertices of the source file (:attr:`Mesh.n_input_vertices`); needed
+        with ``source_vertex_map``.
 
     Notes
     -----
@@ -685,6 +686,9 @@ class Correspondence:
         self.symmetric_landmarks = symmetric_landmarks
         self.orientation = orientation
         self.info = {} if info is None else info
+        if source_vertex_map is not None and n_source_input is None:
+            raise ValueError("source_vertex_map needs n_source_input (the number of vertices "
+                             "of the source file)")
         self.source_vertex_map = source_vertex_map
         self.target_vertex_map = target_vertex_map
         self.n_source_input = n_source_input
@@ -728,14 +732,14 @@ class Correspondence:
         --------
         >>> import numpy as np, trimesh
         >>> from torchheat import Mesh
-        >>> m = trimesh.creation.icosphere(3)
+        >>> m = trimesh.creation.icosphere(2)
         >>> V = m.vertices * [1.0, 0.8, 0.6]
         >>> V2 = np.vstack([V, V[:3] + [5.0, 0, 0]])  # plus a stray triangle, far away
-        >>> F2 = np.vstack([m.faces, [[642, 643, 644]]])
+        >>> F2 = np.vstack([m.faces, [[162, 163, 164]]])
         >>> M = Mesh(V2, F2, largest_component=True)  # the triangle's vertices are dropped
-        >>> corr = match(M, M)
+        >>> corr = match(M, M, method="paper")
         >>> corr.map.shape, corr.full_map().shape
-        (torch.Size([642]), torch.Size([645]))
+        (torch.Size([162]), torch.Size([165]))
         >>> corr.full_map()[-3:].tolist()
         [-1, -1, -1]
         """
@@ -758,10 +762,9 @@ class Correspondence:
         if self.target_vertex_map is not None:
             f = self.target_vertex_map.to(f.device)[f]
         svm = self.source_vertex_map
-        n_in = f.numel() if self.n_source_input is None else int(self.n_source_input)
-        if svm is None or (n_in == f.numel() and svm.numel() == n_in):
+        if svm is None or svm.numel() == self.n_source_input:
             return f  # nothing dropped: vertex_map is the identity
-        full = torch.full((n_in,), -1, dtype=f.dtype, device=f.device)
+        full = torch.full((int(self.n_source_input),), -1, dtype=f.dtype, device=f.device)
         full[svm.to(f.device)] = f
         return full
 
@@ -772,8 +775,12 @@ class Correspondence:
 
 
 def _numbering(src: PreparedShape, tgt: PreparedShape) -> dict:
-    """The vertex numbering of the files behind two prepared shapes (Correspondence args)."""
-    return {"source_vertex_map": src.mesh.vertex_map, "target_vertex_map": tgt.mesh.vertex_map,
+    """The vertex numbering of the files behind two prepared shapes (Correspondence args);
+    None for a mesh that kept all its vertices."""
+    def vertex_map(mesh: Mesh) -> torch.Tensor | None:
+        return None if mesh.n_vertices == mesh.n_input_vertices else mesh.vertex_map
+
+    return {"source_vertex_map": vertex_map(src.mesh), "target_vertex_map": vertex_map(tgt.mesh),
             "n_source_input": src.mesh.n_input_vertices}
 
 
@@ -1697,6 +1704,7 @@ def symmetry(
     corr = match(shape, shape, **options)
     if not corr.has_symmetric_map:
         return corr
+    o = corr.info.get("sym_orientation")  # None with method="paper" (not tested)
     return Correspondence(
         map=corr._symmetric_map,  # still lazy: only the map asked for is computed
         landmarks=corr.symmetric_landmarks,
@@ -1704,7 +1712,7 @@ def symmetry(
         scores=corr.scores,
         symmetric_map=corr._map,
         symmetric_landmarks=corr.landmarks,
-        orientation=float(corr.info.get("sym_orientation", float("nan"))),
+        orientation=float("nan") if o is None else float(o),
         info=corr.info,
         **_numbering(shape, shape),
     )
