@@ -384,12 +384,16 @@ def test_largest_component_symmetry(pieces_pair):
     assert f[3:-1].min() >= 3 and f[3:-1].max() <= 164
 
 
-def test_help_documents_largest_component(capsys):
+def test_help_documents_largest_component_and_minimum(capsys):
+    from torchheat.eigen import DEFAULT_EIGENPAIRS
+
     for cmd in ("match", "symmetry"):
         with pytest.raises(SystemExit):
             main([cmd, "--help"])
         text = " ".join(capsys.readouterr().out.split())
         assert "--largest-component" in text and "-1 for the dropped vertices" in text
+        if cmd == "match":  # the help's literal minimum is the pipeline's
+            assert f"at least {DEFAULT_EIGENPAIRS} vertices" in text
 
 
 # ------------------------------------------------------------------------ too small to match

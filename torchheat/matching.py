@@ -1178,7 +1178,9 @@ def match(
         Shapes M (n vertices) and N (m vertices).
     landmark : int or (int, int), optional
         Source landmark ``p`` (default: the strongest feature point), or a known pair
-        ``(p, q)`` which skips the landmark search.
+        ``(p, q)`` which skips the landmark search. Indices of the meshes as given: for a mesh
+        loaded with ``largest_component=True``, file vertex ``i`` is mesh vertex
+        ``int((mesh.vertex_map == i).nonzero())``.
     landmarks : int
         Number of landmark pairs of the paper's pipeline (1 or more; extra ones are chosen
         greedily among feature pairs, source candidates in farthest-point order).
