@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import generic_sphere
+from conftest import DATA, flat_grid, generic_sphere
 
 from torchheat.cli import main
 
@@ -269,3 +269,212 @@ def test_color_transfer_rejects_bad_map(tmp_path):
     with pytest.raises(ValueError):
         color_transfer(mesh, mesh, np.arange(3), tmp_path / "bad.png")
     assert not (tmp_path / "bad.png").exists()
+
+
+# ---------------------------------------------------------------------- --largest-component
+def _with_pieces(V: np.ndarray, F: np.ndarray, shift: float):
+    """``V, F`` behind a stray triangle (file vertices 0..2) and before an unreferenced vertex:
+    mesh vertex i is file vertex i + 3; the file has len(V) + 4 vertices."""
+    stray = V[:3] + [shift, 0.0, 0.0]
+    V2 = np.vstack([stray, V, [[shift, shift, shift]]])
+    F2 = np.vstack([[[0, 1, 2]], F + 3])
+    return V2, F2
+
+
+@pytest.fixture(scope="module")
+def pieces_pair(tmp_path_factory):
+    """A 162-vertex generic mesh and a permuted + rotated copy, both with a stray triangle and
+    an unreferenced vertex: file source vertex 3 + i maps to file target vertex 3 + inv[i]."""
+    d = tmp_path_factory.mktemp("pieces")
+    V, F = generic_sphere(2, seed=4)
+    perm = np.random.default_rng(5).permutation(len(V))
+    inv = np.argsort(perm)
+    src = write_off(d / "src_pieces.off", *_with_pieces(V, F, 5.0))
+    tgt = write_off(d / "tgt_pieces.off", *_with_pieces((V @ rotation().T)[perm], inv[F], -5.0))
+    expected = np.full(len(V) + 4, -1)
+    expected[3:-1] = 3 + inv
+    return src, tgt, expected, d
+
+
+def test_several_components_refused_with_the_flag_named(pieces_pair, capsys):
+    src, tgt, _, d = pieces_pair
+    rc = main(["match", str(src), str(tgt), "-o", str(d / "no.txt")])
+    err = capsys.readouterr().err
+    assert rc == 1 and len(err.strip().splitlines()) == 1
+    assert src.name in err and "--largest-component" in err and "Traceback" not in err
+    assert not (d / "no.txt").exists()
+
+
+def test_largest_component_map_in_file_numbering(pieces_pair, capsys):
+    src, tgt, expected, d = pieces_pair
+    out, sym, png = d / "map.txt", d / "sym.txt", d / "map.png"
+    p = 3 + 17
+    rc = main(["match", str(src), str(tgt), "-o", str(out), "--largest-component",
+               "--symmetric-out", str(sym), "--png", str(png), "--method", "paper",
+               "--landmark", str(p), "--threads", "1"])
+    assert rc == 0
+    f = read_map(out)
+    assert f.shape == (166,)  # one line per vertex of the source file
+    assert f[[0, 1, 2, 165]].tolist() == [-1, -1, -1, -1]  # the dropped ones
+    assert np.mean(f == expected) >= 0.99  # target indices are the target file's
+    stdout = capsys.readouterr().out
+    assert f"({p}, {expected[p]})" in stdout  # the landmark in file indices, both sides
+    assert "166 vertices (162 in the largest connected component, 4 dropped)" in stdout
+    g = read_map(sym)  # method paper always has a symmetric map
+    assert g.shape == (166,) and g[[0, 1, 2, 165]].tolist() == [-1, -1, -1, -1]
+    assert g[3:-1].min() >= 3 and g[3:-1].max() <= 164  # kept target vertices only
+    assert png.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_largest_component_given_pair_and_workers(pieces_pair, monkeypatch):
+    # Q in target file indices; in-process eigensolves give the same map as the workers
+    # (which solve the largest piece found before torch is imported), and the workers'
+    # eigenpairs are used, not dropped as another mesh's
+    import torchheat.matching
+
+    src, tgt, expected, d = pieces_pair
+    given = []
+    prepare = torchheat.matching.prepare
+
+    def spy(mesh, *args, eigenpairs=None, **kw):
+        given.append(None if eigenpairs is None else eigenpairs[1].shape)
+        return prepare(mesh, *args, eigenpairs=eigenpairs, **kw)
+
+    monkeypatch.setattr(torchheat.matching, "prepare", spy)
+    p = 3 + 40
+    maps = []
+    for workers in ("0", "2"):
+        out = d / f"pair_w{workers}.txt"
+        rc = main(["match", str(src), str(tgt), "-o", str(out), "--largest-component",
+                   "--landmark", str(p), str(expected[p]), "--method", "paper",
+                   "--threads", "1", "--workers", workers])
+        assert rc == 0
+        maps.append(read_map(out))
+    solved = (162, 100) if sys.platform.startswith("linux") else None  # forked workers
+    assert given == [None, None, solved, solved]
+    assert np.mean(maps[0] == expected) >= 0.99
+    assert np.array_equal(maps[0], maps[1])
+
+
+@pytest.mark.parametrize("landmark, phrase", [
+    (["1"], "P=1 is on a piece dropped by --largest-component"),
+    (["165"], "P=165 is on a piece dropped by --largest-component"),
+    (["166"], "P=166 is out of range; the source has 166 vertices"),
+    (["20", "2"], "Q=2 is on a piece dropped by --largest-component"),
+])
+def test_largest_component_landmark_on_dropped_piece(pieces_pair, capsys, landmark, phrase):
+    src, tgt, _, d = pieces_pair
+    out = d / "refused.txt"
+    rc = main(["match", str(src), str(tgt), "-o", str(out), "--largest-component",
+               "--landmark", *landmark])
+    err = capsys.readouterr().err
+    assert rc == 1 and len(err.strip().splitlines()) == 1, err
+    assert phrase in err
+    assert (tgt.name if len(landmark) == 2 else src.name) in err
+    assert not out.exists()
+
+
+def test_largest_component_symmetry(pieces_pair):
+    src, _, _, d = pieces_pair
+    out = d / "self_pieces.txt"
+    assert main(["symmetry", str(src), "-o", str(out), "--largest-component",
+                 "--threads", "1"]) == 0
+    f = read_map(out)
+    assert f.shape == (166,) and f[[0, 1, 2, 165]].tolist() == [-1, -1, -1, -1]
+    assert f[3:-1].min() >= 3 and f[3:-1].max() <= 164
+
+
+def test_help_documents_largest_component_and_minimum(capsys):
+    from torchheat.eigen import DEFAULT_EIGENPAIRS
+
+    for cmd in ("match", "symmetry"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "--largest-component" in text and "-1 for the dropped vertices" in text
+        if cmd == "match":  # the help's literal minimum is the pipeline's
+            assert f"at least {DEFAULT_EIGENPAIRS} vertices" in text
+
+
+# ------------------------------------------------------------------------ too small to match
+def test_too_small_to_match(tmp_path, capsys):
+    spot = str(DATA / "spot.obj")
+    tri = tmp_path / "triangle.obj"
+    tri.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    few = write_off(tmp_path / "grid99.off", *flat_grid(11, 9))  # 99 vertices
+    ok = write_off(tmp_path / "grid100.off", *flat_grid(10, 10))  # 100: the minimum
+    xs = np.linspace(0, 2 * np.pi, 61)[:-1]  # a band of two rings: every vertex on a boundary
+    ring = np.stack([np.cos(xs), np.sin(xs), np.zeros(60)], 1)
+    i, j = np.arange(60), (np.arange(60) + 1) % 60
+    band = write_off(tmp_path / "band.off", np.vstack([ring, ring + [0, 0, 0.2]]),
+                     np.vstack([np.stack([i, j, i + 60], 1), np.stack([j, j + 60, i + 60], 1)]))
+    for args, bad, phrase in [
+        ([tri, spot], tri, "3 vertices, too few to match"),
+        ([spot, tri], tri, "3 vertices, too few to match"),
+        ([few, spot], few, "99 vertices, too few to match"),
+        ([band, spot], band, "no interior vertex (all 120 vertices lie on the boundary"),
+    ]:
+        out = tmp_path / "small.txt"
+        rc = main(["match", *map(str, args), "-o", str(out), "--threads", "1"])
+        err = capsys.readouterr().err
+        assert rc == 1 and len(err.strip().splitlines()) == 1, err
+        assert err.startswith(f"torchheat: error: {bad}: {phrase}"), err
+        if "few" in phrase:
+            assert "at least 100 vertices" in err
+        assert not out.exists()
+    out = tmp_path / "grid100.txt"
+    assert main(["match", str(ok), spot, "-o", str(out), "--threads", "1"]) == 0
+    f = read_map(out)
+    assert f.shape == (100,) and f.min() >= 0 and f.max() < 2930
+    assert main(["symmetry", str(tri), "-o", str(out)]) == 1
+    assert "at least 100 vertices" in capsys.readouterr().err
+
+
+# -------------------------------------------------------------------------------- warnings
+def test_point_cloud_stderr_is_the_error_alone(tmp_path):
+    # a point cloud used to print scipy's FutureWarning about int64 (from the eigensolve
+    # worker, forked with the CLI's warning printer) before the error
+    cloud = tmp_path / "cloud.obj"
+    cloud.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in np.random.default_rng(0)
+                             .standard_normal((50, 3))))
+    exe = Path(sys.executable).parent / "torchheat"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "torchheat.cli"]
+    res = subprocess.run([*cmd, "match", str(cloud), str(DATA / "spot.obj"), "-o",
+                          str(tmp_path / "m.txt")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1
+    assert res.stderr.splitlines() == [
+        f"torchheat: error: {cloud}: mesh has no faces (a point cloud?); a triangle mesh is "
+        "required, reconstruct a surface first (e.g. Poisson / ball pivoting in MeshLab or "
+        "Open3D)"
+    ]
+    assert "arning" not in res.stderr and "int64" not in res.stderr
+
+
+def test_cli_prints_own_warnings_only(tmp_path, monkeypatch, capsys):
+    # main() prints torchheat's warnings (one line each) and drops the libraries' ones
+    import warnings
+
+    import torchheat.meshio
+    from torchheat.mesh import MeshWarning
+
+    read = torchheat.meshio.read_arrays
+
+    def noisy(path):
+        warnings.warn("Input has data type int64, but the output ...", FutureWarning,
+                      stacklevel=1)
+        warnings.warn("Sparse CSR tensor support is in beta state", UserWarning, stacklevel=1)
+        warnings.warn(f"{path}: 1 non-manifold edge\n (shared by more than two faces)",
+                      MeshWarning, stacklevel=1)
+        return read(path)
+
+    monkeypatch.setattr(torchheat.meshio, "read_arrays", noisy)
+    cloud = tmp_path / "cloud.obj"
+    cloud.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        rc = main(["match", str(cloud), str(cloud), "-o", str(tmp_path / "m.txt")])
+    assert rc == 1
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[:2] == [f"torchheat: warning: {cloud}: 1 non-manifold edge (shared by more "
+                         "than two faces)"] * 2  # one per file read
+    assert len(lines) == 3 and lines[2].startswith(f"torchheat: error: {cloud}: mesh has no")

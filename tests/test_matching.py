@@ -412,6 +412,61 @@ def test_bad_input(asym_pair):
         match(S, T, landmarks=0)
 
 
+def test_too_small_to_match():
+    from conftest import flat_grid
+
+    from torchheat import MeshError
+
+    m = trimesh.creation.icosphere(1)  # 42 vertices
+    tiny = Mesh(m.vertices * [1.0, 0.8, 0.6], m.faces, name="ico1")
+    with pytest.raises(MeshError, match=r"^ico1: 42 vertices, too few to match: .* 100 lowest "
+                                        r"eigenpairs .* at least 100 vertices; .* k=K\) with "
+                                        r"K <= 42$"):
+        prepare(tiny)
+    with pytest.raises(MeshError, match="at least 100 vertices"):
+        match(tiny, tiny)
+    with pytest.raises(MeshError, match="at least 100 vertices"):
+        symmetry(tiny)
+    assert prepare(tiny, k=42).hk.k == 42  # fewer eigenpairs: allowed, the user's choice
+    with pytest.raises(MeshError, match="at least 43 vertices"):
+        prepare(tiny, k=43)
+    # a strip: 120 vertices, every one on the boundary
+    V, F = flat_grid(60, 2)
+    with pytest.raises(MeshError, match=r"^strip: no interior vertex \(all 120 vertices"):
+        prepare(Mesh(V, F, name="strip"))
+    V, F = flat_grid(40, 3)  # one row of interior vertices
+    assert prepare(Mesh(V, F), k=100).n == 120
+
+
+def test_full_map_in_the_files_numbering():
+    # meshes loaded with largest_component=True: map on the kept vertices, full_map on the
+    # files' vertices (-1 for dropped source vertices, target indices of the target file)
+    V, F = generic_sphere(2, seed=3)
+    W, G, perm = moved_copy(V, F, seed=5)
+    n = len(V)
+    stray = np.array([[9.0, 0, 0], [9, 1, 0], [9, 0, 1]])
+    src = Mesh(np.vstack([V[:5], stray, V[5:]]),  # file vertex i >= 8 is mesh vertex i - 3
+               np.vstack([np.where(F < 5, F, F + 3), [[5, 6, 7]]]), largest_component=True)
+    tgt = Mesh(np.vstack([stray, W, [[7.0, 7, 7]]]), np.vstack([G + 3, [[0, 1, 2]]]),
+               largest_component=True)
+    assert (src.n_vertices, src.n_input_vertices, tgt.n_input_vertices) == (n, n + 3, n + 4)
+    corr = match(src, tgt, method="paper")
+    assert exact(corr.map, perm) == 1.0  # the meshes' own numbering
+    full = corr.full_map().numpy()
+    want = np.full(n + 3, -1)
+    want[np.r_[0:5, 8:n + 3]] = 3 + perm
+    np.testing.assert_array_equal(full, want)
+    g = corr.full_symmetric_map().numpy()
+    assert g.shape == (n + 3,) and (g[5:8] == -1).all() and g[np.r_[0:5, 8:n + 3]].min() >= 3
+    sym = symmetry(src, method="paper")
+    assert sym.full_map().shape == (n + 3,) and (sym.full_map()[5:8] == -1).all()
+    plain = match(Mesh(V, F), Mesh(W, G), method="paper")
+    assert plain.full_map() is plain.map  # nothing dropped: the same tensor
+    with pytest.raises(ValueError, match="n_source_input"):
+        tm.Correspondence(torch.arange(3), [], torch.tensor([0]), torch.tensor([0.0]),
+                          source_vertex_map=torch.arange(3))
+
+
 # ------------------------------------------------------------------------------------------
 # real data: intrinsic symmetry of a TOSCA shape against its .sym.vts ground truth
 # ------------------------------------------------------------------------------------------

@@ -237,7 +237,8 @@ def test_unreferenced_vertices(tmp_path, ext):
     V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 9, 9], [1, 1, 0], [8, 8, 8]])
     F = np.array([[0, 1, 2], [1, 4, 2]])
     path = write_mesh(tmp_path, "unref" + ext, V, F)
-    assert_mesh_error(path, "2 unreferenced vertices", "vertices 3, 5", "ground-truth", "clean")
+    assert_mesh_error(path, "2 unreferenced vertices", "vertices 3, 5", "ground-truth", "clean",
+                      "--largest-component on the command line", "largest_component=True")
 
 
 @pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])
@@ -245,7 +246,8 @@ def test_several_components(tmp_path, ext):
     V, F = two_triangles_apart()
     path = write_mesh(tmp_path, "parts" + ext, V, F)
     assert_mesh_error(
-        path, "2 connected components", "vertex counts 4, 3", "largest_component=True"
+        path, "2 connected components", "vertex counts 4, 3", "largest_component=True",
+        "--largest-component on the command line",
     )
 
 
@@ -257,20 +259,43 @@ def test_largest_component(tmp_path):
     V2, F2 = V[perm], inv[F][[2, 0, 1]]
     path = write_mesh(tmp_path, "parts.off", V2, F2)
     mesh = load_mesh(path, largest_component=True)
-    assert (mesh.n_vertices, mesh.n_faces) == (4, 2)
+    assert (mesh.n_vertices, mesh.n_faces, mesh.n_input_vertices) == (4, 2, 7)
     assert mesh.vertex_map.dtype == torch.int64
     assert mesh.vertex_map.tolist() == [3, 4, 5, 6]
+    assert mesh.with_vertices(2 * mesh.vertices).n_input_vertices == 7
     np.testing.assert_array_equal(mesh.vertices.numpy(), V2[mesh.vertex_map.numpy()])
     # faces refer to the same points as before
     np.testing.assert_array_equal(mesh.vertices.numpy()[mesh.faces.numpy()], V2[F2[1:]])
     # unreferenced vertices are dropped as well
     V3 = np.vstack([V[:4], [[7.0, 7, 7]]])
     m3 = Mesh(V3, F[:2], largest_component=True)
-    assert m3.vertex_map.tolist() == [0, 1, 2, 3]
+    assert m3.vertex_map.tolist() == [0, 1, 2, 3] and m3.n_input_vertices == 5
     # a single component keeps everything
     m4 = Mesh(V[:4], F[:2], largest_component=True)
-    assert m4.vertex_map.tolist() == [0, 1, 2, 3]
+    assert m4.vertex_map.tolist() == [0, 1, 2, 3] and m4.n_input_vertices == 4
     assert Mesh(V[:4], F[:2]).vertex_map.tolist() == [0, 1, 2, 3]
+    # a tie between equal pieces goes to the one holding the lowest vertex index
+    tie = Mesh(V[[4, 5, 6, 0, 1, 2]], [[0, 1, 2], [3, 4, 5]], largest_component=True)
+    assert tie.vertex_map.tolist() == [0, 1, 2]
+
+
+def test_largest_component_without_torch():
+    # the command line finds the piece before it imports torch (for its eigensolve workers)
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; from torchheat.topology import largest_component, "
+            "restrict_faces; F = np.array([[4, 5, 6], [0, 1, 2], [1, 3, 2]]); "
+            "k = largest_component(F, 8); print(k.tolist(), restrict_faces(F, k, 8).tolist(), "
+            "'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, check=True).stdout
+    assert out.strip() == "[0, 1, 2, 3] [[0, 1, 2], [1, 3, 2]] False"
+    V, F = two_triangles_apart()
+    mesh = Mesh(V[[4, 5, 6, 0, 1, 2, 3]], [[4, 5, 6], [0, 1, 2], [4, 3, 5]],
+                largest_component=True)
+    assert mesh.vertex_map.tolist() == [3, 4, 5, 6]  # the same piece
+    assert mesh.faces.tolist() == [[1, 2, 3], [1, 0, 2]]
 
 
 def test_non_manifold_edge_warns(tmp_path):

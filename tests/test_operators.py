@@ -124,3 +124,44 @@ def test_bad_arguments():
         laplacian(Mesh(V, F), kind="nope")
     with pytest.raises(ValueError, match="boundary"):
         laplacian(Mesh(V, F), boundary="robin")
+
+
+_WARNINGS_SCRIPT = """
+import sys, warnings
+import torch
+import trimesh
+from torchheat import HeatKernel, Mesh, laplacian
+
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    if sys.argv[1] == "torch":  # the control: torch's own construction warns
+        torch.sparse_csr_tensor(torch.tensor([0, 1]), torch.tensor([0]), torch.tensor([1.0]),
+                                size=(1, 1))
+    else:
+        s = trimesh.creation.icosphere(2)
+        L = laplacian(Mesh(s.vertices, s.faces))
+        L.W, L.M, L.S
+        HeatKernel(Mesh(s.vertices, s.faces), times=[0.01, 1.0]).columns([0])
+        # torchheat's own warnings still come through
+        Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]],
+             [[0, 1, 2], [0, 1, 3], [0, 1, 4]], name="fan")
+for w in caught:
+    print(w.category.__name__, "|", str(w.message).splitlines()[0])
+"""
+
+
+def test_no_torch_sparse_warnings_from_operators():
+    # torch warns once per process: each case runs in a fresh interpreter
+    import subprocess
+    import sys
+
+    def run(case):
+        return subprocess.run([sys.executable, "-c", _WARNINGS_SCRIPT, case], check=True,
+                              capture_output=True, text=True, timeout=120).stdout
+
+    control = run("torch")
+    assert "Sparse CSR tensor support is in beta" in control
+    assert "Sparse invariant checks are implicitly disabled" in control
+    lines = run("torchheat").splitlines()
+    assert not [ln for ln in lines if "Sparse" in ln]
+    assert len(lines) == 1 and lines[0].startswith("MeshWarning | fan: 1 non-manifold edge")

@@ -8,7 +8,14 @@ landmark out of range, unwritable output, ...) ends with exit status 1 and a sin
 errors exit with status 2 (argparse). Anything else is a bug and raises with a traceback.
 
 Map files hold one 0-based target vertex index per line, one line per source vertex, in
-source vertex order.
+source vertex order. With ``--largest-component`` the matcher runs on the largest connected
+component of each mesh that has several; the map still has one line per vertex of the source
+*file*, ``-1`` for the vertices that were dropped, and target indices are those of the target
+*file* (``--landmark`` takes file indices too).
+
+Warnings: torchheat's own (:class:`~torchheat.MeshWarning`, e.g. non-manifold edges) are
+printed as one line ``torchheat: warning: ...``; warnings of the libraries underneath (numpy,
+scipy, torch) are not shown by ``match``, ``symmetry`` and ``demo``.
 
 Examples
 --------
@@ -155,6 +162,31 @@ def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
             fh.write("\n")
 
 
+def _plausible(V: Any, F: Any) -> bool:
+    """Whether ``(V, F)`` may be a triangle mesh (faces, in range); :class:`Mesh` checks the
+    rest. Implausible arrays are never sent to an eigensolve worker (a doomed solve)."""
+    import numpy as np
+
+    F = np.asarray(F)
+    return bool(F.ndim == 2 and F.shape[1] == 3 and F.size > 0
+                and np.issubdtype(F.dtype, np.integer) and F.min() >= 0 and F.max() < len(V))
+
+
+def _largest_piece(V: Any, F: Any) -> Any:
+    """The vertices ``Mesh(V, F, largest_component=True)`` keeps, computed without torch.
+
+    None when nothing is dropped, or when the arrays are ones :class:`Mesh` refuses anyway
+    (no faces, indices out of range): its error is then reported.
+    """
+    import numpy as np
+
+    from .topology import largest_component
+
+    if not _plausible(V, F):
+        return None
+    return largest_component(np.asarray(F).astype(np.int64, copy=False), len(V))
+
+
 def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
                       check: Callable[[list[Any]], Any] | None = None,
                       ) -> tuple[list[Any], list[Any], Any, dict[str, float]]:
@@ -163,25 +195,47 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     The files are read with numpy only; the eigensolves (the costliest step of preparing a
     shape) start in worker processes (:class:`torchheat.eigen.EigenWorkers`, ``--workers``)
     *before* torch is imported, so that ``import torch`` and both solves share the cores.
+    With ``--largest-component`` the workers solve the largest component of each mesh (found
+    with numpy, :func:`torchheat.topology.largest_component`, as :class:`Mesh` does).
+    Meshes too small to match are refused (:func:`torchheat.matching._check_matchable`), then
     ``check(meshes)`` runs on the validated meshes before anything is prepared. Returns the
     meshes, the prepared shapes, what ``check`` returned and timings.
     """
+    import numpy as np
+
     from .eigen import DEFAULT_EIGENPAIRS, EigenWorkers
     from .meshio import read_arrays
+    from .topology import restrict_faces
 
     t0 = time.perf_counter()
     arrays = [read_arrays(p) for p in paths]
-    with EigenWorkers(arrays, k=DEFAULT_EIGENPAIRS, processes=args.workers) as bg:
+    largest = bool(getattr(args, "largest_component", False))
+    pieces = [_largest_piece(V, F) if largest else None for V, F in arrays]
+    solved = [(V, F) if k is None else (np.asarray(V)[k], restrict_faces(np.asarray(F), k, len(V)))
+              for (V, F), k in zip(arrays, pieces, strict=True)]
+    workers = args.workers if all(_plausible(V, F) for V, F in arrays) else 0  # Mesh refuses
+    with EigenWorkers(solved, k=DEFAULT_EIGENPAIRS, processes=workers) as bg:
         from .mesh import Mesh  # imports torch, while the workers solve
 
         meshes = []
         for (V, F), p in zip(arrays, paths, strict=True):
-            meshes.append(Mesh(V, F, name=str(p)))
+            meshes.append(Mesh(V, F, name=str(p), largest_component=largest))
+        from .matching import _check_matchable, prepare
+
+        for m in meshes:
+            _check_matchable(m, DEFAULT_EIGENPAIRS, remedy="use a finer mesh (subdivide it)")
         checked = check(meshes) if check is not None else None
-        from .matching import prepare
+
+        def eigenpairs(i: int) -> Any:
+            # the workers' vertices must be the mesh's (they are: same rule, same arrays)
+            n = len(solved[i][0])
+            if n != meshes[i].n_vertices or (pieces[i] is not None and not np.array_equal(
+                    pieces[i], meshes[i].vertex_map.numpy())):
+                return None
+            return bg.get(i)
 
         t1 = time.perf_counter()
-        prepared = [prepare(m, times=args.times, k=DEFAULT_EIGENPAIRS, eigenpairs=bg.get(i),
+        prepared = [prepare(m, times=args.times, k=DEFAULT_EIGENPAIRS, eigenpairs=eigenpairs(i),
                             num_threads=args.threads) for i, m in enumerate(meshes)]
         n_bg = bg.running
     t2 = time.perf_counter()
@@ -199,27 +253,52 @@ def _timings(t_prep: dict[str, float], corr: Any) -> dict[str, float]:
                          if k != "prepare"}}
 
 
+def _mesh_index(v: int, mesh: Any, path: str, name: str, role: str) -> int:
+    """The mesh's index of the file's vertex ``v`` (they differ with --largest-component)."""
+    import numpy as np
+
+    n_in = mesh.n_input_vertices
+    if not 0 <= v < n_in:
+        raise CLIError(
+            f"{path}: --landmark {name}={v} is out of range; the {role} has "
+            f"{n_in} vertices (valid 0..{n_in - 1})"
+        )
+    if mesh.n_vertices == n_in:
+        return v
+    kept = mesh.vertex_map.numpy()  # sorted
+    i = int(np.searchsorted(kept, v))
+    if i < kept.size and kept[i] == v:
+        return i
+    raise CLIError(
+        f"{path}: --landmark {name}={v} is on a piece dropped by --largest-component (the "
+        f"largest connected component keeps {mesh.n_vertices} of the {n_in} vertices); "
+        f"choose a {role} vertex of the largest component"
+    )
+
+
 def _check_landmark(landmark: list[int] | None, source: Any, target: Any,
                     src_path: str, tgt_path: str) -> int | tuple[int, int] | None:
+    """``--landmark P [Q]`` (file indices) as indices of the meshes that are matched."""
     if not landmark:
         return None
     if len(landmark) > 2:
         raise CLIError(f"--landmark takes P or P Q (two vertex indices), got {len(landmark)}")
-    p = landmark[0]
-    if not 0 <= p < source.n_vertices:
-        raise CLIError(
-            f"{src_path}: --landmark P={p} is out of range; the source has "
-            f"{source.n_vertices} vertices (valid 0..{source.n_vertices - 1})"
-        )
+    p = _mesh_index(landmark[0], source, src_path, "P", "source")
     if len(landmark) == 1:
         return p
-    q = landmark[1]
-    if not 0 <= q < target.n_vertices:
-        raise CLIError(
-            f"{tgt_path}: --landmark Q={q} is out of range; the target has "
-            f"{target.n_vertices} vertices (valid 0..{target.n_vertices - 1})"
-        )
-    return (p, q)
+    return (p, _mesh_index(landmark[1], target, tgt_path, "Q", "target"))
+
+
+def _in_files(idx: Any, vertex_map: Any) -> list[int]:
+    """Mesh vertex indices as indices of the file (``vertex_map``; None: the same)."""
+    idx = [int(i) for i in idx]
+    return idx if vertex_map is None else [int(vertex_map[i]) for i in idx]
+
+
+def _pieces(mesh: Any) -> str:
+    """`` (largest component: k of n vertices, n - k written as -1)`` or ``""``."""
+    n, n_in = mesh.n_vertices, mesh.n_input_vertices
+    return "" if n == n_in else f" ({n} in the largest connected component, {n_in - n} dropped)"
 
 
 def _fmt_pairs(pairs: Sequence[tuple[int, int]], k: int = 5) -> str:
@@ -232,13 +311,15 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
     """Print the landmarks, candidate scores, orientation and timings of a correspondence."""
     import math
 
-    lms = corr.landmarks
+    svm, tvm = corr.source_vertex_map, corr.target_vertex_map  # printed as file indices
+    lms = list(zip(_in_files([a for a, _ in corr.landmarks], svm),
+                   _in_files([b for _, b in corr.landmarks], tvm), strict=True))
     print(f"landmarks ({len(lms)} pairs source -> target): {_fmt_pairs(lms)}")
-    cands = corr.candidates.tolist()[:k]
+    cands = _in_files(corr.candidates.tolist()[:k], tvm)
     scores = corr.scores.tolist()[:k]
     ranked = ", ".join(f"{c}: {s:.3e}" for c, s in zip(cands, scores, strict=True))
-    print(f"top candidates for p={corr.info.get('p', lms[0][0])} (target vertex: score E, lower "
-          f"is better): {ranked}")
+    p = _in_files([corr.info.get("p", corr.landmarks[0][0])], svm)[0]
+    print(f"top candidates for p={p} (target vertex: score E, lower is better): {ranked}")
     o = corr.orientation
     if isinstance(o, float) and math.isnan(o):
         print("orientation score: not tested (method 'paper')")
@@ -283,20 +364,22 @@ def _cmd_match(args: argparse.Namespace) -> int:
         print(f"{PROG}: warning: no symmetric map was found; {sym_out} is not written",
               file=sys.stderr)
     with _outputs() as outs:
-        outs.stage(out, lambda p: write_map(p, corr.map))
+        outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
         if sym_out is not None and corr.symmetric_map is not None:
-            outs.stage(sym_out, lambda p: write_map(p, corr.symmetric_map))
+            outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
         if png is not None:
             from .viz import color_transfer
 
-            outs.stage(png, lambda p: color_transfer(
+            outs.stage(png, lambda p: color_transfer(  # the matched pieces
                 source, target, corr.map, p,
                 title=f"{Path(args.source).name} -> {Path(args.target).name} ({method})"))
-    print(f"source {args.source}: {source.n_vertices} vertices; target {args.target}: "
-          f"{target.n_vertices} vertices; method {method}; read, prepared and matched in "
-          f"{elapsed:.2f} s")
+    print(f"source {args.source}: {source.n_input_vertices} vertices{_pieces(source)}; "
+          f"target {args.target}: {target.n_input_vertices} vertices{_pieces(target)}; "
+          f"method {method}; read, prepared and matched in {elapsed:.2f} s")
     _report(corr, label="direct map")
-    print(f"map written to {out}")
+    dropped = source.n_input_vertices - source.n_vertices
+    print(f"map written to {out}" + (f" ({dropped} dropped source vertices written as -1)"
+                                     if dropped else ""))
     if sym_out is not None and corr.symmetric_map is not None:
         print(f"symmetric map written to {sym_out}")
     if png is not None:
@@ -324,16 +407,18 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
         print(f"{PROG}: warning: no orientation-reversing self-map was found; the written "
               "map is the best direct self-map (close to the identity)", file=sys.stderr)
     with _outputs() as outs:
-        outs.stage(out, lambda p: write_map(p, corr.map))
+        outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the file's numbering
         if png is not None:
             from .viz import color_transfer
 
             outs.stage(png, lambda p: color_transfer(
                 mesh, mesh, corr.map, p, title=f"symmetry of {Path(args.mesh).name}"))
-    print(f"mesh {args.mesh}: {mesh.n_vertices} vertices; read, prepared and symmetry found "
-          f"in {elapsed:.2f} s")
+    print(f"mesh {args.mesh}: {mesh.n_input_vertices} vertices{_pieces(mesh)}; read, prepared "
+          f"and symmetry found in {elapsed:.2f} s")
     _report(corr, label="symmetry map")
-    print(f"self-map written to {out}")
+    dropped = mesh.n_input_vertices - mesh.n_vertices
+    print(f"self-map written to {out}" + (f" ({dropped} dropped vertices written as -1)"
+                                          if dropped else ""))
     if png is not None:
         print(f"colour transfer written to {png}")
     return 0
@@ -453,6 +538,15 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "0: solve in-process)")
 
 
+def _add_largest_component(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--largest-component", action="store_true",
+                   help="for a mesh with several connected components (or unreferenced "
+                        "vertices), which is refused otherwise: match its largest component. "
+                        f"The {what} keeps one line per vertex of the source file, -1 for the "
+                        "dropped vertices, and target indices of the target file; --landmark "
+                        "takes file indices (refused on a dropped vertex)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchheat`` command.
 
@@ -485,13 +579,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="dense map from a source mesh to a target mesh",
         description="Match SOURCE to TARGET (OFF, PLY or OBJ; vertex order is kept) and write "
                     "the map: one 0-based target vertex index per line, one line per source "
-                    "vertex, in source vertex order.\n\n"
+                    "vertex, in source vertex order (-1 for vertices dropped by "
+                    "--largest-component).\n\n"
+                    "Each mesh needs at least 100 vertices (the descriptors use 100 "
+                    "eigenpairs of its Laplacian) and an interior vertex.\n\n"
                     "--landmarks K > 1 selects method 'paper' (the paper's greedy extra "
                     "landmarks) unless --method is given; method 'refine' ignores K.",
         epilog="example:\n"
                "  torchheat match wolf0.off wolf1.off -o wolf.txt --symmetric-out wolf_sym.txt "
                "--png wolf.png\n"
-               "  torchheat match a.off b.off -o ab.txt --landmark 120 4711   # known pair",
+               "  torchheat match a.off b.off -o ab.txt --landmark 120 4711   # known pair\n"
+               "  torchheat match scan.obj b.off -o sb.txt --largest-component  # stray pieces",
     )
     m.add_argument("source", metavar="SOURCE", help="source mesh file")
     m.add_argument("target", metavar="TARGET", help="target mesh file")
@@ -509,8 +607,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "augmentation; 'paper': the paper's pipeline (default: refine, or "
                         "paper when --landmarks > 1)")
     _add_common(m)
+    _add_largest_component(m, "map (and --symmetric-out)")
     m.add_argument("--png", metavar="PATH", default=None,
-                   help="also write a colour-transfer picture of the map")
+                   help="also write a colour-transfer picture of the map (of the matched "
+                        "components with --largest-component)")
     m.set_defaults(func=_cmd_match)
 
     s = sub.add_parser(
@@ -525,6 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--landmark", type=int, nargs=1, metavar="P", default=None,
                    help="source landmark (default: the strongest feature point)")
     _add_common(s)
+    _add_largest_component(s, "self-map")
     s.add_argument("--png", metavar="PATH", default=None,
                    help="also write a colour-transfer picture of the self-map")
     s.set_defaults(func=_cmd_symmetry)
@@ -555,9 +656,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _showwarning(message, category, filename, lineno, file=None, line=None) -> None:
+def _own(category: type[Warning]) -> bool:
+    """Whether a warning category is torchheat's own (e.g. MeshWarning), not a library's."""
+    return category.__module__.split(".")[0] == "torchheat"
+
+
+def _showwarning(message, category, filename, lineno, file=None, line=None, *,
+                 own_only: bool = False) -> None:
+    """One line ``torchheat: warning: ...``; with ``own_only``, torchheat's warnings only.
+
+    Library warnings (numpy, scipy, torch: ``FutureWarning`` about dtypes, torch's sparse
+    "beta" notice, ...) say nothing a command-line user can act on. The eigensolve workers
+    are forked inside :func:`main`, so they inherit this function.
+    """
+    if own_only and not _own(category):
+        return
     text = _one_line(str(message))
     print(f"{PROG}: warning: {text}", file=sys.stderr if file is None else file)
+
+
+def _show_own_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    _showwarning(message, category, filename, lineno, file, line, own_only=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -581,11 +700,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     with warnings.catch_warnings():
-        warnings.showwarning = _showwarning
-        warnings.filterwarnings("ignore", message=r"Sparse (CSR tensor support|invariant)")
         try:
-            if argv and argv[0] == "evaluate":
+            if argv and argv[0] == "evaluate":  # torchheat.batch words its own warnings
+                warnings.showwarning = _showwarning
                 return _cmd_evaluate(argv[1:])
+            warnings.showwarning = _show_own_warning
             args = build_parser().parse_args(argv)
             return int(args.func(args))
         except CLIError as exc:

@@ -43,7 +43,7 @@ from .descriptors import (
 )
 from .eigen import DEFAULT_EIGENPAIRS
 from .heat import HeatKernel, threads
-from .mesh import Mesh
+from .mesh import Mesh, MeshError
 
 __all__ = [
     "Correspondence",
@@ -308,6 +308,13 @@ def prepare(
     -------
     PreparedShape
 
+    Raises
+    ------
+    MeshError
+        A mesh too small to match: fewer vertices than ``k`` (the time samples come from the
+        ``k``-th eigenvalue, which a mesh of fewer vertices does not have), or no interior
+        vertex (a strip or fan of triangles, every vertex on the boundary).
+
     Examples
     --------
     >>> import trimesh
@@ -315,7 +322,12 @@ def prepare(
     >>> s = trimesh.creation.icosphere(2)
     >>> prepare(Mesh(s.vertices, s.faces)).hks.shape
     torch.Size([162, 10])
+    >>> prepare(Mesh(s.vertices, s.faces, name="ico2"), k=200)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    torchheat.meshio.MeshError: ico2: 162 vertices, too few to match: ... at least 200 vertices; ...
     """
+    _check_matchable(mesh, k if hk is None else hk.k)
     t0 = time.perf_counter()
     if hk is None:
         if isinstance(times, str):
@@ -340,6 +352,41 @@ def prepare(
     return PreparedShape(mesh, hk, feats, normals,
                          {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
                          own_times=hk.times.clone())
+
+
+def _check_matchable(mesh: Mesh, k: int, remedy: str | None = None) -> None:
+    """Refuse a mesh too small for the descriptors: fewer than ``k`` vertices, or no interior
+    vertex.
+
+    The minimum is ``k`` vertices (100 by default, :data:`~torchheat.eigen.DEFAULT_EIGENPAIRS`):
+    the heat kernel map and the HKS are built on the ``k`` lowest eigenpairs of the Laplacian,
+    and the adaptive time samples span ``[4 ln10 / lambda_k, 4 ln10 / lambda_1]``, so a mesh
+    needs a ``k``-th eigenvalue, i.e. at least ``k`` vertices; with fewer, the basis is the
+    whole (mesh-resolution) spectrum and the target, which takes the source's times, is
+    asked for a band it does not resolve. A mesh without an interior vertex is a strip or
+    fan of triangles: no vertex has a complete one-ring, so the Laplacian has no interior
+    stencil and there is no surface to match. ``remedy`` replaces the advice of the message
+    (the command line has no ``k``).
+    """
+    n = mesh.n_vertices
+    label = mesh.name or "mesh"
+    piece = "" if mesh.n_input_vertices == n else (
+        f" in its largest connected component (the file has {mesh.n_input_vertices})")
+    if n < k:
+        advice = remedy or (f"use a finer mesh (subdivide it), or prepare it with fewer "
+                            f"eigenpairs: prepare(mesh, k=K) with K <= {n}")
+        raise MeshError(
+            f"{label}: {n} vertices{piece}, too few to match: the descriptors are built from "
+            f"the {k} lowest eigenpairs of the Laplacian (the time samples from the last of "
+            f"them), so a mesh needs at least {k} vertices; {advice}"
+        )
+    if bool(mesh.boundary_vertices().all()):
+        advice = remedy or "use a finer mesh (subdivide it)"
+        raise MeshError(
+            f"{label}: no interior vertex (all {n} vertices{piece} lie on the boundary: a "
+            "strip or fan of triangles), too little surface to match: a mesh needs at least "
+            f"one vertex with a complete ring of triangles; {advice}"
+        )
 
 
 def _as_prepared(x, **kw) -> PreparedShape:
@@ -589,9 +636,25 @@ class Correspondence:
         Orientation score of the direct map (+1 preserving), NaN if not tested.
     info : dict
         Timings (s) per stage, the options used and the hypotheses considered.
+    source_vertex_map, target_vertex_map : torch.Tensor or None
+        int64, shapes (n_source,) and (n_target,): the index in the input file of every
+        vertex of the matched meshes (their :attr:`Mesh.vertex_map`), for a mesh that
+        ``largest_component=True`` cut; None for one that kept all its vertices.
+    n_source_input : int or None
+        Number of vertices of the source file (:attr:`Mesh.n_input_vertices`); needed
+        with ``source_vertex_map``.
 
     Notes
     -----
+    **Vertex numbering.** ``map``, ``symmetric_map``, ``landmarks`` and ``candidates`` use
+    the vertex indices of the meshes that were matched, so that ``target.vertices[map]``
+    is the image of ``source.vertices``. They differ from the files' indices only for meshes
+    loaded with ``largest_component=True`` (``--largest-component`` on the command line):
+    :meth:`full_map` and :meth:`full_symmetric_map` give the maps in the files' numbering,
+    one entry per vertex of the source file, ``-1`` for a source vertex that was dropped
+    (they are what ``torchheat match`` writes).
+
+
     ``map`` and ``symmetric_map`` may be given as zero-argument callables: the dense map is
     then computed on first access and kept (the refined pipeline's last round is a dense
     ``n x m`` search, the most expensive single step on large meshes, so a caller that only
@@ -610,6 +673,10 @@ class Correspondence:
         symmetric_landmarks: list | None = None,
         orientation: float = float("nan"),
         info: dict | None = None,
+        *,
+        source_vertex_map: torch.Tensor | None = None,
+        target_vertex_map: torch.Tensor | None = None,
+        n_source_input: int | None = None,
     ) -> None:
         self._map = map
         self._symmetric_map = symmetric_map
@@ -619,6 +686,12 @@ class Correspondence:
         self.symmetric_landmarks = symmetric_landmarks
         self.orientation = orientation
         self.info = {} if info is None else info
+        if source_vertex_map is not None and n_source_input is None:
+            raise ValueError("source_vertex_map needs n_source_input (the number of vertices "
+                             "of the source file)")
+        self.source_vertex_map = source_vertex_map
+        self.target_vertex_map = target_vertex_map
+        self.n_source_input = n_source_input
 
     @property
     def map(self) -> torch.Tensor:
@@ -645,10 +718,70 @@ class Correspondence:
         """Whether a symmetric map was found (without computing it)."""
         return self._symmetric_map is not None
 
+    def full_map(self) -> torch.Tensor:
+        """The direct map in the numbering of the input files.
+
+        Returns
+        -------
+        torch.Tensor
+            int64, shape (n_source_input,): for every vertex of the source *file*, the index
+            in the target *file* of its image, or ``-1`` if the vertex was dropped by
+            ``largest_component=True``. Equal to :attr:`map` when no vertex was dropped.
+
+        Examples
+        --------
+        >>> import numpy as np, trimesh
+        >>> from torchheat import Mesh
+        >>> m = trimesh.creation.icosphere(2)
+        >>> V = m.vertices * [1.0, 0.8, 0.6]
+        >>> V2 = np.vstack([V, V[:3] + [5.0, 0, 0]])  # plus a stray triangle, far away
+        >>> F2 = np.vstack([m.faces, [[162, 163, 164]]])
+        >>> M = Mesh(V2, F2, largest_component=True)  # the triangle's vertices are dropped
+        >>> corr = match(M, M, method="paper")
+        >>> corr.map.shape, corr.full_map().shape
+        (torch.Size([162]), torch.Size([165]))
+        >>> corr.full_map()[-3:].tolist()
+        [-1, -1, -1]
+        """
+        return self._in_files(self.map)
+
+    def full_symmetric_map(self) -> torch.Tensor | None:
+        """:attr:`symmetric_map` in the numbering of the input files (see :meth:`full_map`).
+
+        Returns
+        -------
+        torch.Tensor or None
+            int64, shape (n_source_input,), ``-1`` for dropped source vertices; None when
+            there is no symmetric map.
+        """
+        return self._in_files(self.symmetric_map)
+
+    def _in_files(self, f: torch.Tensor | None) -> torch.Tensor | None:
+        if f is None:
+            return None
+        if self.target_vertex_map is not None:
+            f = self.target_vertex_map.to(f.device)[f]
+        svm = self.source_vertex_map
+        if svm is None or svm.numel() == self.n_source_input:
+            return f  # nothing dropped: vertex_map is the identity
+        full = torch.full((int(self.n_source_input),), -1, dtype=f.dtype, device=f.device)
+        full[svm.to(f.device)] = f
+        return full
+
     def __repr__(self) -> str:
         n = "lazy" if callable(self._map) else tuple(self._map.shape)
         return (f"Correspondence(map={n}, landmarks={len(self.landmarks)}, "
                 f"symmetric={self.has_symmetric_map}, orientation={self.orientation:+.3f})")
+
+
+def _numbering(src: PreparedShape, tgt: PreparedShape) -> dict:
+    """The vertex numbering of the files behind two prepared shapes (Correspondence args);
+    None for a mesh that kept all its vertices."""
+    def vertex_map(mesh: Mesh) -> torch.Tensor | None:
+        return None if mesh.n_vertices == mesh.n_input_vertices else mesh.vertex_map
+
+    return {"source_vertex_map": vertex_map(src.mesh), "target_vertex_map": vertex_map(tgt.mesh),
+            "n_source_input": src.mesh.n_input_vertices}
 
 
 def _distinct(cands: torch.Tensor, V: np.ndarray, radius: float, limit: int) -> list[int]:
@@ -1045,7 +1178,9 @@ def match(
         Shapes M (n vertices) and N (m vertices).
     landmark : int or (int, int), optional
         Source landmark ``p`` (default: the strongest feature point), or a known pair
-        ``(p, q)`` which skips the landmark search.
+        ``(p, q)`` which skips the landmark search. Indices of the meshes as given: for a mesh
+        loaded with ``largest_component=True``, file vertex ``i`` is mesh vertex
+        ``int((mesh.vertex_map == i).nonzero())``.
     landmarks : int
         Number of landmark pairs of the paper's pipeline (1 or more; extra ones are chosen
         greedily among feature pairs, source candidates in farthest-point order).
@@ -1127,6 +1262,15 @@ def match(
     Returns
     -------
     Correspondence
+        Maps on the vertices of the meshes as given; for meshes loaded with
+        ``largest_component=True``, :meth:`Correspondence.full_map` gives the map in the
+        files' vertex numbering (``-1`` for dropped source vertices).
+
+    Raises
+    ------
+    MeshError
+        A mesh too small to match (fewer than ``k = 100`` vertices or no interior vertex,
+        see :func:`prepare`).
 
     Examples
     --------
@@ -1208,6 +1352,7 @@ def match(
             shape.__dict__.pop("_desc_cache", None)
     timings["total"] = time.perf_counter() - t_start
     return Correspondence(
+        **_numbering(src, tgt),
         map=direct["map"],
         landmarks=direct["landmarks"],
         candidates=cands,
@@ -1542,6 +1687,8 @@ def symmetry(
     Returns
     -------
     Correspondence
+        A self-map; :meth:`Correspondence.full_map` gives it in the file's numbering for a
+        mesh loaded with ``largest_component=True``.
 
     Examples
     --------
@@ -1559,6 +1706,7 @@ def symmetry(
     corr = match(shape, shape, **options)
     if not corr.has_symmetric_map:
         return corr
+    o = corr.info.get("sym_orientation")  # None with method="paper" (not tested)
     return Correspondence(
         map=corr._symmetric_map,  # still lazy: only the map asked for is computed
         landmarks=corr.symmetric_landmarks,
@@ -1566,7 +1714,8 @@ def symmetry(
         scores=corr.scores,
         symmetric_map=corr._map,
         symmetric_landmarks=corr.landmarks,
-        orientation=float(corr.info.get("sym_orientation", float("nan"))),
+        orientation=float("nan") if o is None else float(o),
         info=corr.info,
+        **_numbering(shape, shape),
     )
 

@@ -11,9 +11,11 @@ Conventions
   reorders or drops vertices. Files are read by :mod:`torchheat.meshio` (small parsers for
   ASCII OFF and OBJ, ``trimesh.load(..., process=False)`` for the rest; OBJ never goes to
   trimesh, which splits vertices along texture seams).
-  The only exception is ``largest_component=True``, which drops the vertices outside the largest
-  connected component and records, in :attr:`Mesh.vertex_map`, the index each kept vertex had
-  in the input.
+  The only exception is ``largest_component=True`` (``--largest-component`` on the command
+  line), which drops the vertices outside the largest connected component and records, in
+  :attr:`Mesh.vertex_map`, the index each kept vertex had in the input
+  (:meth:`Correspondence.full_map <torchheat.matching.Correspondence.full_map>` translates
+  maps back to the input numbering).
 * Validation (``check=True``, the default) refuses, with a :class:`MeshError` (a
   ``ValueError``) whose message starts with the file path or mesh name, says what is wrong and
   what to do: missing / unreadable / unsupported files, meshes without faces, non-triangle
@@ -48,9 +50,10 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 import torch
-from scipy.sparse.csgraph import connected_components
 
 from .meshio import SUPPORTED_FORMATS, MeshError, MeshWarning, _plural, read_arrays
+from .topology import adjacency_from_keys, components, edge_keys, restrict_faces
+from .topology import largest_component as _largest_component
 
 __all__ = ["Mesh", "MeshError", "MeshWarning", "load_mesh", "SUPPORTED_FORMATS"]
 
@@ -143,29 +146,6 @@ def _bbox_diagonal_np(V: np.ndarray) -> float:
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
 
 
-def _edge_keys(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected edges as keys ``i * n + j`` (``i < j``), sorted, with face counts.
-
-    Self-loops (faces with a repeated vertex) are left out.
-    """
-    a = F[:, [0, 1, 2]].ravel()
-    b = F[:, [1, 2, 0]].ravel()
-    lo = np.minimum(a, b)
-    hi = np.maximum(a, b)
-    keep = lo != hi
-    keys = lo[keep] * np.int64(n) + hi[keep]
-    keys, counts = np.unique(keys, return_counts=True)
-    return keys, counts
-
-
-def _adjacency_from_keys(keys: np.ndarray, n: int) -> sp.csr_matrix:
-    i, j = np.divmod(keys, np.int64(n))
-    rows = np.concatenate([i, j])
-    cols = np.concatenate([j, i])
-    data = np.ones(rows.size, dtype=np.float64)
-    return sp.csr_matrix((data, (rows, cols)), shape=(n, n))
-
-
 class Mesh:
     """A triangle mesh with validated, index-preserving vertices.
 
@@ -184,8 +164,10 @@ class Mesh:
     largest_component : bool, default False
         Keep only the largest connected component (by number of vertices; ties go to the
         component holding the lowest vertex index), renumbering vertices and faces;
-        :attr:`vertex_map` records the original index of each kept vertex. Unreferenced
-        vertices count as (single-vertex) components and are dropped too.
+        :attr:`vertex_map` records the original index of each kept vertex and
+        :attr:`n_input_vertices` how many the input had. Unreferenced vertices count as
+        (single-vertex) components and are dropped too. A :class:`~torchheat.Correspondence`
+        between such meshes gives maps in the input numbering by ``full_map()``.
 
     Attributes
     ----------
@@ -198,6 +180,9 @@ class Mesh:
     vertex_map : torch.Tensor
         ``[n]`` int64: index in the original input of each kept vertex (``arange(n)`` unless
         ``largest_component=True`` dropped some).
+    n_input_vertices : int
+        Number of vertices of the input, those dropped by ``largest_component=True``
+        included (``n_vertices`` unless some were dropped).
 
     Raises
     ------
@@ -228,6 +213,7 @@ class Mesh:
     faces: torch.Tensor
     name: str | None
     vertex_map: torch.Tensor
+    n_input_vertices: int
 
     def __init__(
         self,
@@ -243,6 +229,7 @@ class Mesh:
         V = _vertices_tensor(vertices, label)
         F = _faces_tensor(faces, label)
         n = V.shape[0]
+        self.n_input_vertices = int(n)
         vertex_map = torch.arange(n, dtype=torch.int64)
         self._edge_cache: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -252,18 +239,15 @@ class Mesh:
             self._check_finite(Vn)
             self._check_range(Fn, n)
         if largest_component:
-            keys, counts = _edge_keys(Fn, n)
-            ncomp, labels = connected_components(_adjacency_from_keys(keys, n), directed=False)
-            if ncomp > 1:
-                sizes = np.bincount(labels, minlength=ncomp)
-                keep = labels == int(np.argmax(sizes))
-                kept = np.flatnonzero(keep)
-                new_index = np.full(n, -1, dtype=np.int64)
-                new_index[kept] = np.arange(kept.size)
-                Fn = new_index[Fn[keep[Fn[:, 0]]]]
+            keys, counts = edge_keys(Fn, n)
+            kept = _largest_component(Fn, n, keys)
+            if kept is None:
+                self._edge_cache = (keys, counts)
+            else:
+                Fn = restrict_faces(Fn, kept, n)
                 Vn = Vn[kept]
                 V = V[torch.from_numpy(kept)].contiguous()
-                F = torch.from_numpy(np.ascontiguousarray(Fn))
+                F = torch.from_numpy(Fn)
                 vertex_map = torch.from_numpy(kept.astype(np.int64))
                 n = kept.size
                 if Fn.shape[0] == 0:
@@ -271,8 +255,6 @@ class Mesh:
                         f"{label}: the largest connected component has no faces (the mesh "
                         "is made of isolated vertices); check the file"
                     )
-            else:
-                self._edge_cache = (keys, counts)
         self.vertices = V
         self.faces = F
         self.vertex_map = vertex_map
@@ -332,21 +314,24 @@ class Mesh:
                 f"{self._label()}: {_plural(bad.size, 'unreferenced vertex')} (used by no "
                 f"face; vertices {_listed(bad)}); they would shift ground-truth vertex indices "
                 "if dropped silently, so clean the file (remove them and renumber the "
-                "correspondences), or pass largest_component=True to drop them and track the "
-                "original indices in vertex_map"
+                "correspondences), or drop them: --largest-component on the command line "
+                "(maps keep the file's vertex indices, -1 for dropped vertices), "
+                "largest_component=True in Python (Mesh.vertex_map has the original indices)"
             )
 
     def _check_topology(self) -> None:
         n = self.n_vertices
         keys, counts = self._edges_cached()
-        ncomp, labels = connected_components(_adjacency_from_keys(keys, n), directed=False)
+        ncomp, labels = components(keys, n)
         if ncomp > 1:
             sizes = np.sort(np.bincount(labels, minlength=ncomp))[::-1]
             shown = ", ".join(str(int(s)) for s in sizes[:10]) + (", ..." if ncomp > 10 else "")
             raise MeshError(
                 f"{self._label()}: mesh has {ncomp} connected components (vertex counts "
-                f"{shown}); pass largest_component=True to keep the largest one (vertex_map "
-                "gives the original indices), or split the file"
+                f"{shown}); keep the largest one with --largest-component on the command line "
+                "(maps keep the file's vertex indices, -1 for dropped vertices) or "
+                "largest_component=True in Python (Mesh.vertex_map has the original indices), "
+                "or split the file"
             )
         nonmanifold = np.flatnonzero(counts > 2)
         if nonmanifold.size:
@@ -361,7 +346,7 @@ class Mesh:
 
     def _edges_cached(self) -> tuple[np.ndarray, np.ndarray]:
         if self._edge_cache is None:
-            self._edge_cache = _edge_keys(self.faces.numpy(), self.n_vertices)
+            self._edge_cache = edge_keys(self.faces.numpy(), self.n_vertices)
         return self._edge_cache
 
     # ------------------------------------------------------------- properties
@@ -499,7 +484,7 @@ class Mesh:
         [[0.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 0.0]]
         """
         keys, _ = self._edges_cached()
-        return _adjacency_from_keys(keys, self.n_vertices)
+        return adjacency_from_keys(keys, self.n_vertices)
 
     def _keys_to_edges(self, keys: np.ndarray) -> torch.Tensor:
         i, j = np.divmod(keys, np.int64(self.n_vertices))
@@ -562,6 +547,7 @@ class Mesh:
         new.vertices = V
         new.faces = self.faces
         new.vertex_map = self.vertex_map
+        new.n_input_vertices = self.n_input_vertices
         new._edge_cache = self._edge_cache
         Vn = V.detach().numpy()
         new._check_finite(Vn)

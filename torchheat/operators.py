@@ -21,6 +21,9 @@ Data flows ``mesh.py -> operators.py -> heat.py``.
 
 from __future__ import annotations
 
+import contextlib
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
 
@@ -42,7 +45,40 @@ __all__ = [
     "massmatrix",
     "laplacian",
     "scipy_to_torch",
+    "quiet_sparse_construction",
 ]
+
+
+@contextlib.contextmanager
+def quiet_sparse_construction() -> Iterator[None]:
+    """Silence torch's "Sparse CSR tensor support is in beta" warning, nothing else.
+
+    Wrap every construction of a torch sparse tensor in torchheat
+    (``torch.sparse_csr_tensor`` / ``sparse_coo_tensor``) with it: torch emits that
+    ``UserWarning`` once per process (so once per ``DataLoader`` worker too), about its own
+    API, not about anything a user of torchheat can act on. The other construction warning,
+    "Sparse invariant checks are implicitly disabled", is avoided at its source by passing
+    ``check_invariants=False`` explicitly. Only this one message is filtered, and only inside
+    the block: other warnings, torchheat's own :class:`~torchheat.MeshWarning` included, pass
+    through. (``warnings.catch_warnings`` swaps the process-wide filter list for the duration
+    of the block, as every local filter in Python before 3.14 does.)
+
+    Examples
+    --------
+    >>> import warnings, torch
+    >>> with warnings.catch_warnings(record=True) as caught:
+    ...     warnings.simplefilter("always")
+    ...     with quiet_sparse_construction():
+    ...         A = torch.sparse_csr_tensor(torch.tensor([0, 1]), torch.tensor([0]),
+    ...                                     torch.tensor([2.0]), size=(1, 1),
+    ...                                     check_invariants=False)
+    >>> [str(w.message) for w in caught if "parse" in str(w.message)]
+    []
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Sparse CSR tensor support is in beta",
+                                category=UserWarning)
+        yield
 
 
 def _arrays(V, F) -> tuple[np.ndarray, np.ndarray]:
@@ -115,12 +151,14 @@ def scipy_to_torch(M: sp.spmatrix, dtype: torch.dtype = torch.float64) -> torch.
     """
     M = sp.csr_matrix(M)
     M.sort_indices()
-    return torch.sparse_csr_tensor(
-        torch.from_numpy(M.indptr.astype(np.int64)),
-        torch.from_numpy(M.indices.astype(np.int64)),
-        torch.from_numpy(M.data.astype(np.float64)).to(dtype),
-        size=M.shape,
-    )
+    with quiet_sparse_construction():
+        return torch.sparse_csr_tensor(
+            torch.from_numpy(M.indptr.astype(np.int64)),
+            torch.from_numpy(M.indices.astype(np.int64)),
+            torch.from_numpy(M.data.astype(np.float64)).to(dtype),
+            size=M.shape,
+            check_invariants=False,  # scipy's sorted CSR; explicit: torch warns otherwise
+        )
 
 
 def cotmatrix(V, F) -> torch.Tensor:
