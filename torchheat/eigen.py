@@ -136,7 +136,8 @@ def massmatrix_scipy(V: np.ndarray, F: np.ndarray, kind: str) -> sp.csr_matrix:
     n = V.shape[0]
     fa = face_areas(V, F)
     if kind == "lumped":
-        d = np.bincount(F.ravel(), weights=np.repeat(fa / 3.0, 3), minlength=n)
+        # float64 even when F is empty (bincount then returns int64, and scipy warns)
+        d = np.bincount(F.ravel(), weights=np.repeat(fa / 3.0, 3), minlength=n).astype(float)
         return sp.diags(d).tocsr()
     if kind == "consistent":
         r = np.concatenate([F[:, a] for a in range(3) for _ in range(3)])
