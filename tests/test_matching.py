@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 from torchheat import HeatKernel, Mesh
 from torchheat import matching as tm
 from torchheat.descriptors import feature_points, heat_kernel_map
+from torchheat.heat import threads
 from torchheat.matching import match, nearest_neighbors, orientation_score, prepare, symmetry
 
 
@@ -297,7 +298,7 @@ def test_twin_landmark_on_plane_is_off_plane_with_mirror_twin(mirror_pair):
     diam = float(np.linalg.norm(V.max(0) - V.min(0)))
     on_plane = np.flatnonzero(V[:, 1] == 0.0)
     p = int(on_plane[len(on_plane) // 3])
-    p2 = tm._twin_landmark(S, p, True, None, diam)
+    p2 = tm.landmarks._twin_landmark(S, p, True, None, diam)
     assert p2 is not None
     assert abs(V[p2, 1]) > 0.1 * np.abs(V[:, 1]).max()
     assert np.linalg.norm(V[p2] - V[mp[p2]]) > 0.2 * diam
@@ -307,8 +308,8 @@ def test_fps_cache_is_a_prefix(small_mesh):
     from torchheat.descriptors import farthest_point_sampling
 
     s = prepare(small_mesh)
-    a = tm._fps(s, 10)
-    b = tm._fps(s, 300)
+    a = tm.prepared._fps(s, 10)
+    b = tm.prepared._fps(s, 300)
     V = small_mesh.numpy()[0]
     assert a.tolist() == b[:10].tolist()
     assert b.tolist() == farthest_point_sampling(V, 300).tolist()
@@ -327,9 +328,9 @@ def test_factored_l2_search_equals_brute_force(src_factored, tgt_factored):
     D = ((X[rows, None, :] - Y[None, :, :]) ** 2).sum(dim=2)  # brute force
     ref_d, ref_i = D.min(dim=1)
     for dt in (torch.float64, torch.float32):
-        fx = tm._Factors(Ps.to(dt), Cs.to(dt)) if src_factored else tm._Factors(X.to(dt))
-        fy = tm._Factors(Pt.to(dt), Ct.to(dt)) if tgt_factored else tm._Factors(Y.to(dt))
-        d, i = tm._nn_factors(fx, rows, fy, memory_bytes=8 * 250 * 7)  # 7 or 14-row blocks
+        fx = tm.nn._Factors(Ps.to(dt), Cs.to(dt)) if src_factored else tm.nn._Factors(X.to(dt))
+        fy = tm.nn._Factors(Pt.to(dt), Ct.to(dt)) if tgt_factored else tm.nn._Factors(Y.to(dt))
+        d, i = tm.nn._nn_factors(fx, rows, fy, memory_bytes=8 * 250 * 7)  # 7 or 14-row blocks
         if dt == torch.float64:
             assert torch.equal(i, ref_i)
             torch.testing.assert_close(d, ref_d, rtol=1e-9, atol=1e-9 * float(D.max()))
@@ -338,7 +339,7 @@ def test_factored_l2_search_equals_brute_force(src_factored, tgt_factored):
             torch.testing.assert_close(d.double(), ref_d, rtol=1e-3, atol=1e-2)
     # |x|^2 through the Gram form (d > k) and explicitly (d < k) agree
     for P, C in ((Ps, Cs), (Cs.T, Ps.T)):
-        f = tm._Factors(P.double(), C.double())
+        f = tm.nn._Factors(P.double(), C.double())
         torch.testing.assert_close(f.sqnorms(), ((P @ C).double() ** 2).sum(1))
 
 
@@ -515,22 +516,22 @@ def test_pruned_search_equals_brute_force(asym_pair):
     # refinement by cluster pruning is the brute-force map
     S, T = asym_pair[0], asym_pair[1]
     T.hk.set_times(S.hk.times)
-    samples = tm._fps(S, 48)
+    samples = tm.prepared._fps(S, 48)
     perm = torch.as_tensor(asym_pair[2])  # source vertex i is target vertex perm[i]
     g = perm[samples]
-    R = tm._Refiner(S, T, samples)
+    R = tm.refine._Refiner(S, T, samples)
     Fs = R.source(torch.float64)
-    Ft = tm._refine_factors(T, g, torch.float64)
-    ref_d, ref_i = tm._nn_factors(Fs, None, Ft)
+    Ft = tm.refine._refine_factors(T, g, torch.float64)
+    ref_d, ref_i = tm.nn._nn_factors(Fs, None, Ft)
     assert (ref_i == perm).float().mean() > 0.99  # an isometric copy: the permutation
     for C in (16, 60, 200):
-        d, i = tm._nn_factors_pruned(Fs, None, Ft, tm._fps(T, C), memory_bytes=2**16)
+        d, i = tm.nn._nn_factors_pruned(Fs, None, Ft, tm.prepared._fps(T, C), memory_bytes=2**16)
         assert torch.equal(i, ref_i)
         torch.testing.assert_close(d, ref_d, rtol=1e-9, atol=1e-12 * float(Fs.sqnorms().max()))
     # a perturbed target (not an exact copy): still the same minima
-    Fn = tm._Factors(Ft.P + 1e-3 * torch.randn_like(Ft.P), Ft.C)
-    ref_d, ref_i = tm._nn_factors(Fs, None, Fn)
-    d, i = tm._nn_factors_pruned(Fs, None, Fn, tm._fps(T, 60))
+    Fn = tm.nn._Factors(Ft.P + 1e-3 * torch.randn_like(Ft.P), Ft.C)
+    ref_d, ref_i = tm.nn._nn_factors(Fs, None, Fn)
+    d, i = tm.nn._nn_factors_pruned(Fs, None, Fn, tm.prepared._fps(T, 60))
     assert torch.equal(i, ref_i)
 
 
@@ -540,19 +541,19 @@ def test_background_self_symmetry_gives_the_same_maps(monkeypatch):
     V, F = mirror_mesh(3)
     W, G, perm = moved_copy(V, F, seed=11)
     ran_in: list[str] = []
-    orig = tm._self_symmetry
+    orig = tm.pipeline._self_symmetry
 
     def spy(*args, **kw):
         import threading
 
-        if not tm._self_symmetry_cached(args[0], args[4]):  # computed, not a cache hit
+        if not tm.pipeline._self_symmetry_cached(args[0], args[4]):  # computed, not a cache hit
             ran_in.append(threading.current_thread().name)
         return orig(*args, **kw)
 
-    monkeypatch.setattr(tm, "_self_symmetry", spy)
+    monkeypatch.setattr(tm.pipeline, "_self_symmetry", spy)
     out = {}
     for bg in (False, True):
-        with tm.threads(2):
+        with threads(2):
             S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
             corr = match(S, T, background=bg)
             out[bg] = (corr.map, corr.symmetric_map)
@@ -567,15 +568,15 @@ def test_background_reraises_and_restores_threads():
     def boom():
         raise RuntimeError("in the background")
 
-    with tm.threads(2):
-        bg = tm._Background()
+    with threads(2):
+        bg = tm.background._Background()
         bg.start(boom)
         assert torch.get_num_threads() == 1  # halved while the background runs
         with pytest.raises(RuntimeError, match="in the background"):
             bg.wait()
         assert torch.get_num_threads() == 2
-        with tm.threads(1):
-            one = tm._Background()
+        with threads(1):
+            one = tm.background._Background()
             one.start(boom)  # one thread: nothing to split, runs nothing in the background
             one.wait()
 
@@ -583,11 +584,11 @@ def test_background_reraises_and_restores_threads():
 def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
     V, F = generic_sphere(2, seed=4)
     S = prepare(Mesh(V, F))
-    D1 = tm._descriptor(S, [3], True)
-    assert tm._descriptor(S, [3], True) is D1  # memoised
+    D1 = tm.prepared._descriptor(S, [3], True)
+    assert tm.prepared._descriptor(S, [3], True) is D1  # memoised
     assert torch.equal(D1, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
     S.hk.set_times(S.hk.times * 2)  # new times: a new descriptor, not the stale one
-    D2 = tm._descriptor(S, [3], True)
+    D2 = tm.prepared._descriptor(S, [3], True)
     assert D2 is not D1 and not torch.allclose(D1, D2)
     assert torch.equal(D2, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
     match(S, S)

@@ -1,0 +1,290 @@
+"""The paper's landmark search (score every candidate ``q`` for ``p`` at once), dense maps from
+landmarks, and the seeding of hypotheses (distinct candidates, twin landmarks, greedy extra
+landmarks).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from ..descriptors import (
+    feature_points,
+    heat_kernel_map,
+    ring_neighbors,
+)
+from .nn import _kdtree, nearest_neighbors
+from .prepared import PreparedShape, _descriptor, _fps
+
+__all__ = ["landmark_scores", "dense_map"]
+
+
+def landmark_scores(
+    source: PreparedShape,
+    target: PreparedShape,
+    p: int | Sequence[int],
+    candidates: Sequence[int] | torch.Tensor,
+    *,
+    q_fixed: Sequence[int] = (),
+    use_hks: bool = True,
+    engine: str = "auto",
+    samples: torch.Tensor | None = None,
+    memory_bytes: int = 256 * 2**20,
+) -> torch.Tensor:
+    """Score every candidate ``q`` for the source landmark ``p``.
+
+    ``E(p, q) = sum_x min_y ||Phi_p(x) - Phi_q(y)||_inf^2`` (divided by the number of x).
+
+    Parameters
+    ----------
+    source, target : PreparedShape
+    p : int or sequence of int
+        Source landmark; a sequence ``[p_1, ..., p_l]`` scores the last one given the images
+        ``q_fixed`` of the others (greedy extra landmarks).
+    candidates : sequence of int, shape (c,)
+        Target vertices to score.
+    q_fixed : sequence of int
+        Images of the earlier landmarks.
+    use_hks : bool
+        Append the HKS coordinates.
+    engine : str
+        See :func:`nearest_neighbors`.
+    samples : torch.Tensor, optional
+        Source vertices x summed over (default: all).
+
+    Returns
+    -------
+    torch.Tensor
+        float64 scores, shape (c,) (lower is better).
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> from torchheat import Mesh, prepare
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = prepare(Mesh(m.vertices, m.faces))
+    >>> landmark_scores(s, s, 0, [0, 1]).shape
+    torch.Size([2])
+    """
+    ps = [int(p)] if np.isscalar(p) or isinstance(p, int | np.integer) else [int(v) for v in p]
+    qf = [int(v) for v in q_fixed]
+    if len(qf) != len(ps) - 1:
+        raise ValueError("q_fixed must give the images of all but the last source landmark")
+    cand = torch.as_tensor(candidates, dtype=torch.int64).reshape(-1)
+    Dp = _descriptor(source, ps, use_hks)
+    if samples is not None:
+        Dp = Dp[samples]
+    Cq = target.hk.columns(cand, certify=False)  # [c, m, J]: all candidates, one call
+    J = target.hk.times.numel()
+    fixed = heat_kernel_map(target.hk, qf) if qf else None
+    t = target.hk.times.to(Cq.dtype)
+    scores = torch.empty(cand.numel(), dtype=torch.float64)
+    for i in range(cand.numel()):
+        parts = [] if fixed is None else [fixed]
+        parts.append(Cq[i] * t)
+        if use_hks:
+            parts.append(target.hks.to(Cq.dtype))
+        Dq = torch.cat(parts, dim=1)
+        d, _ = nearest_neighbors(Dp, Dq, p=math.inf, engine=engine, memory_bytes=memory_bytes)
+        scores[i] = float((d.double() ** 2).mean())
+    del J
+    return scores
+
+
+def dense_map(
+    source: PreparedShape,
+    target: PreparedShape,
+    landmarks: Sequence[tuple[int, int]],
+    *,
+    use_hks: bool = True,
+    engine: str = "auto",
+    p: float = math.inf,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dense map ``f(x) = argmin_y ||Phi(x) - Phi(y)||_p`` from landmark pairs.
+
+    Parameters
+    ----------
+    source, target : PreparedShape
+    landmarks : sequence of (p, q)
+    use_hks : bool
+    engine : str
+    p : float
+        Norm of the nearest-neighbour search (paper: inf).
+
+    Returns
+    -------
+    map : torch.Tensor, int64, shape (n,)
+    dist : torch.Tensor, shape (n,)
+        Descriptor distance of each vertex to its image.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> from torchheat import Mesh, prepare
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = prepare(Mesh(m.vertices, m.faces))
+    >>> dense_map(s, s, [(0, 0)])[0].shape
+    torch.Size([162])
+    """
+    ps = [int(a) for a, _ in landmarks]
+    qs = [int(b) for _, b in landmarks]
+    Dp = _descriptor(source, ps, use_hks)
+    Dq = _descriptor(target, qs, use_hks)
+    d, i = nearest_neighbors(Dp, Dq, p=p, engine=engine)
+    return i, d
+
+
+def _distinct(cands: torch.Tensor, V: np.ndarray, radius: float, limit: int) -> list[int]:
+    """Keep candidates (in rank order) farther than ``radius`` from every kept one."""
+    kept: list[int] = []
+    for c in cands.tolist():
+        if all(np.linalg.norm(V[c] - V[k]) > radius for k in kept):
+            kept.append(int(c))
+        if len(kept) >= limit:
+            break
+    return kept
+
+
+def _sample_map(src, tgt, lms, rows, use_hks, engine) -> tuple[torch.Tensor, torch.Tensor]:
+    """Images of the source vertices ``rows`` under the map of landmark pairs ``lms``."""
+    ps = [a for a, _ in lms]
+    qs = [b for _, b in lms]
+    Dp = _descriptor(src, ps, use_hks)[rows]
+    Dq = _descriptor(tgt, qs, use_hks)
+    d, i = nearest_neighbors(Dp, Dq, p=math.inf, engine=engine)
+    return i, d
+
+
+def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
+               radius: float) -> int | None:
+    """Second source landmark if the one-point map of ``p`` is ambiguous, else None.
+
+    The map from ``p`` alone is ambiguous when a self-isometry of the source fixes ``p``
+    (e.g. ``p`` on the plane of a mirror-symmetric shape): then most vertices ``x`` have a
+    *twin* ``x'``, far from ``x``, whose descriptor is ten times closer to ``x``'s than any
+    mesh neighbour's. The twins are found by a 2-NN self-search of the descriptor on 256
+    spread samples (the first ``rows``); if more than a quarter of them qualify, the vertex
+    farthest from its twin is returned: its image separates the two maps.
+    """
+    D = _descriptor(src, [p], use_hks).double().cpu().numpy()
+    V, _ = src.mesh.numpy()
+    r = (_fps(src, 256) if rows is None else rows[:256]).numpy()
+    dist, idx = _kdtree(D).query(D[r], k=2, p=np.inf)
+    first_is_self = idx[:, 0] == r
+    twin = np.where(first_is_self, idx[:, 1], idx[:, 0])
+    dtwin = np.where(first_is_self, dist[:, 1], dist[:, 0])
+    A = ring_neighbors(src.mesh, 1).tocoo()
+    dedge = np.abs(D[A.row] - D[A.col]).max(axis=1)
+    dlocal = np.full(src.n, np.inf)
+    np.minimum.at(dlocal, A.row, dedge)
+    sep = np.linalg.norm(V[r] - V[twin], axis=1)
+    qual = (sep > radius) & (dtwin < 0.1 * dlocal[r])
+    if qual.mean() <= 0.25:
+        return None
+    return int(r[np.argmax(np.where(qual, sep, -1.0))])
+
+
+def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
+                   diam: float) -> int | None:
+    """Second source landmark that separates the direct map of ``p`` from its mirror.
+
+    If ``p`` lies on (or near) the plane of a mirror-symmetric shape, its one-point map cannot
+    tell left from right: a vertex ``x`` off the plane and its mirror twin ``x'`` have nearly
+    the same descriptor. Among 256 spread samples the one whose nearest descriptor among
+    vertices farther than 0.2 diameters is closest is returned (e.g. one paw of a cat whose
+    ``p`` is the tail tip, its twin the other paw); its two near-best images give the two
+    hypotheses. Detecting whether ``p`` is on the plane is not reliable on real meshes
+    (measured: the twin/neighbour descriptor ratios of on-plane and off-plane landmarks
+    overlap), so the caller branches on this landmark unconditionally.
+    """
+    D = _descriptor(src, [p], use_hks).double().cpu().numpy()
+    V, _ = src.mesh.numpy()
+    r = (_fps(src, 256) if rows is None else rows[:256]).numpy()
+    k = min(64, src.n)
+    dist, idx = _kdtree(D).query(D[r], k=k, p=np.inf)
+    dist, idx = np.atleast_2d(dist), np.atleast_2d(idx)
+    far = np.linalg.norm(V[idx] - V[r][:, None], axis=2) > 0.2 * diam
+    has = far.any(axis=1)
+    if not has.any():
+        return None
+    dtwin = np.where(has, dist[np.arange(len(r)), np.argmax(far, axis=1)], np.inf)
+    return int(r[int(np.argmin(dtwin))])
+
+
+def _expand(src, tgt, p, q, p2, use_hks, radius, limit=2) -> list[list[tuple[int, int]]]:
+    """Landmark hypotheses from ``(p, q)``: ``[(p, q)]`` or, when ``p2`` disambiguates, one
+    ``[(p, q), (p2, q2)]`` per distinct near-best image ``q2`` of ``p2``."""
+    if p2 is None:
+        return [[(p, q)]]
+    Dp = _descriptor(src, [p], use_hks)[p2].double().cpu().numpy()
+    Dq = _descriptor(tgt, [q], use_hks).double().cpu().numpy()
+    k = min(64, tgt.n)
+    _, nb = _kdtree(Dq).query(Dp, k=k, p=np.inf)
+    W, _ = tgt.mesh.numpy()
+    q2s = _distinct(torch.as_tensor(np.atleast_1d(nb)), W, radius, limit)
+    return [[(p, q), (p2, int(q2))] for q2 in q2s]
+
+
+def _landmark_search(src: PreparedShape, tgt: PreparedShape, landmark, use_hks: bool,
+                     engine: str, score_rows: torch.Tensor | None, max_features: int,
+                     n_candidates: int) -> tuple[int, torch.Tensor, torch.Tensor]:
+    """The source landmark ``p`` and every target candidate ranked by ``E(p, q)``.
+
+    ``landmark``: None (the strongest source feature), ``p``, or a known pair ``(p, q)``.
+    Candidates are the target's feature points, or, for a ``p`` that is no feature point,
+    the 2-ring local minima of the HKS distance to ``p``. Returns ``(p, candidates,
+    scores)``, best first.
+    """
+    if landmark is None:
+        p = int(src.features[0])
+    elif isinstance(landmark, tuple | list):
+        p = int(landmark[0])
+    else:
+        p = int(landmark)
+    if not 0 <= p < src.n:
+        raise IndexError(f"source landmark {p} out of range for {src.n} vertices")
+    if isinstance(landmark, tuple | list):
+        q0 = int(landmark[1])
+        if not 0 <= q0 < tgt.n:
+            raise IndexError(f"target landmark {q0} out of range for {tgt.n} vertices")
+        cands = torch.tensor([q0])
+        scores = landmark_scores(src, tgt, p, cands, use_hks=use_hks, engine=engine)
+    else:
+        pool = tgt.features
+        if not bool((src.features == p).any()):
+            # a landmark that is no feature point has no feature image: candidates are
+            # the 2-ring local minima of the HKS distance to p (its image is one)
+            dh = (tgt.hks - src.hks[p].to(tgt.hks.dtype)).abs().amax(dim=1)
+            pool = feature_points(tgt.mesh, -dh, rings=2,
+                                  max_features=max(int(max_features), 2 * n_candidates))
+        scores = landmark_scores(src, tgt, p, pool, use_hks=use_hks, engine=engine,
+                                 samples=score_rows)
+        order = torch.argsort(scores, stable=True)
+        cands, scores = pool[order], scores[order]
+    return p, cands, scores
+
+
+def _farthest_feature(V: np.ndarray, feats: np.ndarray, used: Sequence[int]) -> int:
+    """The feature point farthest (Euclidean) from every vertex in ``used``."""
+    d = np.min(np.linalg.norm(V[feats][:, None] - V[list(used)][None], axis=2), axis=1)
+    return int(feats[int(np.argmax(d))])
+
+
+def _greedy_landmarks(src, tgt, lms, total, use_hks, engine):
+    """Paper Sec. 4: add (p_i, q_i) among feature pairs minimising the combined error.
+
+    Source candidates are taken in farthest-point order from the existing landmarks (the top
+    HKS maxima cluster, e.g. fingertips of one hand)."""
+    lms = list(lms)
+    V, _ = src.mesh.numpy()
+    feats = src.features.numpy()
+    while len(lms) < total:
+        used = [a for a, _ in lms]
+        p2 = _farthest_feature(V, feats, used)
+        sc = landmark_scores(src, tgt, [*used, p2], tgt.features, q_fixed=[b for _, b in lms],
+                             use_hks=use_hks, engine=engine)
+        lms.append((p2, int(tgt.features[int(torch.argmin(sc))])))
+    return lms

@@ -1,0 +1,264 @@
+"""Prepared shapes: a mesh with its heat kernel, HKS, feature points and normals, computed once
+(:func:`prepare`), and the landmark descriptors of a prepared shape (memoised per call).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..descriptors import (
+    farthest_point_sampling,
+    feature_points,
+    heat_kernel_map,
+    hks,
+)
+from ..eigen import DEFAULT_EIGENPAIRS
+from ..heat import HeatKernel
+from ..mesh import Mesh, MeshError
+
+__all__ = ["PreparedShape", "prepare"]
+
+
+# ------------------------------------------------------------------------------------------
+# prepared shapes
+# ------------------------------------------------------------------------------------------
+@dataclass
+class PreparedShape:
+    """A mesh with everything matching needs, computed once.
+
+    Attributes
+    ----------
+    mesh : Mesh
+    hk : HeatKernel
+        Heat kernel solver; its ``times`` are the descriptor's time samples.
+    features : torch.Tensor, shape (f,)
+        Feature points, strongest first.
+    normals : numpy.ndarray, shape (n, 3)
+        Area-weighted vertex normals (for the orientation test).
+    hks : torch.Tensor, shape (n, J)
+        t-scaled HKS at ``hk.times`` (the augmentation coordinates; recomputed if the times
+        change).
+    own_times : torch.Tensor, shape (J,), optional
+        The times the shape was prepared with. :func:`match` gives a target its source's
+        times; the target's self-symmetry (the mirror hypothesis) is computed at these own
+        times instead, once per prepared target, whatever the source.
+    """
+
+    mesh: Mesh
+    hk: HeatKernel
+    features: torch.Tensor
+    normals: np.ndarray
+    timings: dict = field(default_factory=dict)
+    own_times: torch.Tensor | None = None  # the times it was prepared with (a target's
+    # hk.times become its source's; its self-symmetry is computed at these, once)
+    _hks: torch.Tensor | None = None
+    _hks_times: torch.Tensor | None = None
+
+    @property
+    def n(self) -> int:
+        return self.mesh.n_vertices
+
+    @property
+    def hks(self) -> torch.Tensor:
+        t = self.hk.times
+        if self._hks is None or self._hks_times is None or not (
+            self._hks_times.shape == t.shape and torch.equal(self._hks_times, t)
+        ):
+            self._hks = hks(self.hk)
+            self._hks_times = t.clone()
+        return self._hks
+
+
+def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
+    """First ``k`` farthest-point samples of the shape's vertices, cached on the shape (the
+    greedy order is deterministic, so shorter requests are prefixes of longer ones)."""
+    k = min(int(k), shape.n)
+    cached = shape.__dict__.get("_fps_cache")
+    if cached is None or cached.numel() < k:
+        V, _ = shape.mesh.numpy()
+        cached = farthest_point_sampling(V, max(k, 256))
+        shape.__dict__["_fps_cache"] = cached
+    return cached[:k]
+
+
+def _vertex_normals(mesh: Mesh) -> np.ndarray:
+    V, F = mesh.numpy()
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])  # area-weighted
+    vn = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(vn, F[:, k], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+
+
+def prepare(
+    mesh: Mesh,
+    times: str | Sequence[float] | torch.Tensor | None = "adaptive",
+    *,
+    feature_time: float = 0.05,
+    max_features: int = 50,
+    k: int = DEFAULT_EIGENPAIRS,
+    rtol: float = 1e-6,
+    kind: str = "cotan",
+    boundary: str = "neumann",
+    hk: HeatKernel | None = None,
+    eigenpairs: tuple | None = None,
+    num_threads: int | None = None,
+) -> PreparedShape:
+    """Precompute a shape for matching (heat kernel, HKS, features, normals).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    times : "adaptive", "paper", None or sequence of float
+        ``"adaptive"`` (default): 10 log-spaced samples in ``[4 ln10 / lambda_k,
+        4 ln10 / lambda_1]`` from the shape's own spectrum, computed from the eigenbasis
+        alone (accurate to about 1e-4 there). ``"paper"`` / None: the paper's 10 in
+        [0.001, 2] at unit area, certified to ``rtol`` by the hybrid heat kernel. A sequence:
+        those times (hybrid, certified).
+    feature_time : float
+        Time of the HKS whose 2-ring maxima are the feature points.
+    max_features : int
+        Cap on the number of feature points (strongest first).
+    k : int
+        Eigenpairs of the heat kernel's eigenbasis (default 100).
+    rtol, kind, boundary, num_threads
+        Passed to :class:`HeatKernel`.
+    hk : HeatKernel, optional
+        A ready solver (e.g. rebuilt from a disk cache); ``times`` is then ignored.
+    eigenpairs : (lam, phi), optional
+        The ``k`` eigenpairs of the mesh's operator if already known (shapes (k,), (n, k);
+        e.g. from :class:`torchheat.eigen.EigenWorkers`); skips the eigensolve.
+
+    Returns
+    -------
+    PreparedShape
+
+    Raises
+    ------
+    MeshError
+        A mesh too small to match: fewer vertices than ``k`` (the time samples come from the
+        ``k``-th eigenvalue, which a mesh of fewer vertices does not have), or no interior
+        vertex (a strip or fan of triangles, every vertex on the boundary).
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> from torchheat import Mesh
+    >>> s = trimesh.creation.icosphere(2)
+    >>> prepare(Mesh(s.vertices, s.faces)).hks.shape
+    torch.Size([162, 10])
+    >>> prepare(Mesh(s.vertices, s.faces, name="ico2"), k=200)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    torchheat.meshio.MeshError: ico2: 162 vertices, too few to match: ... at least 200 vertices; ...
+    """
+    _check_matchable(mesh, k if hk is None else hk.k)
+    t0 = time.perf_counter()
+    if hk is None:
+        if isinstance(times, str):
+            if times not in ("adaptive", "paper"):
+                raise ValueError(f"unknown times {times!r}; use 'adaptive', 'paper' or a list")
+            adaptive = times == "adaptive"
+            times = None
+        else:
+            adaptive = False
+        hk = HeatKernel(mesh, times=times, rtol=rtol, k=k, kind=kind, boundary=boundary,
+                        num_threads=num_threads, method="spectral" if adaptive else "auto",
+                        eigenpairs=eigenpairs)
+        if adaptive:
+            hk.set_times(hk.adaptive_times())
+    t1 = time.perf_counter()
+    lam = hk.eigenvalues.numpy()
+    phi = hk.eigenvectors.numpy()
+    sig = (phi**2) @ np.exp(-feature_time * lam)  # HKS at the feature time
+    feats = feature_points(mesh, sig, rings=2, max_features=max_features)
+    normals = _vertex_normals(mesh)
+    t2 = time.perf_counter()
+    return PreparedShape(mesh, hk, feats, normals,
+                         {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
+                         own_times=hk.times.clone())
+
+
+def _check_matchable(mesh: Mesh, k: int, remedy: str | None = None) -> None:
+    """Refuse a mesh too small for the descriptors: fewer than ``k`` vertices, or no interior
+    vertex.
+
+    The minimum is ``k`` vertices (100 by default, :data:`~torchheat.eigen.DEFAULT_EIGENPAIRS`):
+    the heat kernel map and the HKS are built on the ``k`` lowest eigenpairs of the Laplacian,
+    and the adaptive time samples span ``[4 ln10 / lambda_k, 4 ln10 / lambda_1]``, so a mesh
+    needs a ``k``-th eigenvalue, i.e. at least ``k`` vertices; with fewer, the basis is the
+    whole (mesh-resolution) spectrum and the target, which takes the source's times, is
+    asked for a band it does not resolve. A mesh without an interior vertex is a strip or
+    fan of triangles: no vertex has a complete one-ring, so the Laplacian has no interior
+    stencil and there is no surface to match. ``remedy`` replaces the advice of the message
+    (the command line has no ``k``).
+    """
+    n = mesh.n_vertices
+    label = mesh.name or "mesh"
+    piece = "" if mesh.n_input_vertices == n else (
+        f" in its largest connected component (the file has {mesh.n_input_vertices})")
+    if n < k:
+        advice = remedy or (f"use a finer mesh (subdivide it), or prepare it with fewer "
+                            f"eigenpairs: prepare(mesh, k=K) with K <= {n}")
+        raise MeshError(
+            f"{label}: {n} vertices{piece}, too few to match: the descriptors are built from "
+            f"the {k} lowest eigenpairs of the Laplacian (the time samples from the last of "
+            f"them), so a mesh needs at least {k} vertices; {advice}"
+        )
+    if bool(mesh.boundary_vertices().all()):
+        advice = remedy or "use a finer mesh (subdivide it)"
+        raise MeshError(
+            f"{label}: no interior vertex (all {n} vertices{piece} lie on the boundary: a "
+            "strip or fan of triangles), too little surface to match: a mesh needs at least "
+            f"one vertex with a complete ring of triangles; {advice}"
+        )
+
+
+def _as_prepared(x, **kw) -> PreparedShape:
+    if isinstance(x, PreparedShape):
+        return x
+    if isinstance(x, Mesh):
+        return prepare(x, **kw)
+    raise TypeError(f"expected a Mesh or PreparedShape, got {type(x).__name__}")
+
+
+# ------------------------------------------------------------------------------------------
+# scoring and maps
+# ------------------------------------------------------------------------------------------
+# Descriptors of the landmark sets a match asks for, memoised per shape: the same one-point
+# descriptor is wanted by the candidate scoring, the twin and ambiguity tests, every expansion
+# and every hypothesis seeded from it (94 of 146 computations on a SCAPE pair were repeats).
+_DESC_CACHE_BYTES = 64 * 2**20
+
+
+_DESC_LOCK = threading.Lock()  # the background self-symmetry may share the shape's cache
+
+
+def _descriptor(shape: PreparedShape, landmarks, use_hks: bool, columns=None) -> torch.Tensor:
+    """``[n, L J (+ J)]`` HKM (+ HKS) of ``landmarks``; read-only (it may be cached)."""
+    key = None
+    if columns is None:
+        key = (tuple(int(v) for v in np.atleast_1d(np.asarray(landmarks))), bool(use_hks),
+               tuple(shape.hk.times.tolist()))
+        with _DESC_LOCK:
+            hit = shape.__dict__.get("_desc_cache", {}).get(key)
+        if hit is not None:
+            return hit
+    D = heat_kernel_map(shape.hk, landmarks, columns)
+    if use_hks:
+        D = torch.cat([D, shape.hks.to(D.dtype)], dim=1)
+    if key is not None:
+        limit = _DESC_CACHE_BYTES // max(1, D.element_size() * D.numel())
+        with _DESC_LOCK:
+            cache = shape.__dict__.setdefault("_desc_cache", {})
+            while cache and len(cache) >= limit:
+                cache.pop(next(iter(cache)))  # oldest first
+            if limit > 0:
+                cache[key] = D
+    return D

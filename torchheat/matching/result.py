@@ -1,0 +1,185 @@
+"""The result of matching: :class:`Correspondence`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ..mesh import Mesh
+from .prepared import PreparedShape
+
+__all__ = ["Correspondence"]
+
+
+# ------------------------------------------------------------------------------------------
+# the pipeline
+# ------------------------------------------------------------------------------------------
+class Correspondence:
+    """Result of :func:`match` / :func:`symmetry`.
+
+    Attributes
+    ----------
+    map : torch.Tensor, int64, shape (n_source,)
+        Target vertex of every source vertex (the direct map).
+    landmarks : list of (int, int)
+        Landmark pairs (p, q) the direct map was computed from (first: the one-point match;
+        with refinement, followed by the augmented landmarks).
+    candidates : torch.Tensor, int64, shape (c,)
+        Target candidates for the first source landmark, ranked best first.
+    scores : torch.Tensor, float64, shape (c,)
+        Their scores ``E(p, q)`` (ascending).
+    symmetric_map : torch.Tensor or None
+        The intrinsic-symmetric alternative, if one was found.
+    symmetric_landmarks : list of (int, int) or None
+    orientation : float
+        Orientation score of the direct map (+1 preserving), NaN if not tested.
+    info : dict
+        Timings (s) per stage, the options used and the hypotheses considered.
+    source_vertex_map, target_vertex_map : torch.Tensor or None
+        int64, shapes (n_source,) and (n_target,): the index in the input file of every
+        vertex of the matched meshes (their :attr:`Mesh.vertex_map`), for a mesh that
+        ``largest_component=True`` cut; None for one that kept all its vertices.
+    n_source_input : int or None
+        Number of vertices of the source file (:attr:`Mesh.n_input_vertices`); needed
+        with ``source_vertex_map``.
+
+    Notes
+    -----
+    **Vertex numbering.** ``map``, ``symmetric_map``, ``landmarks`` and ``candidates`` use
+    the vertex indices of the meshes that were matched, so that ``target.vertices[map]``
+    is the image of ``source.vertices``. They differ from the files' indices only for meshes
+    loaded with ``largest_component=True`` (``--largest-component`` on the command line):
+    :meth:`full_map` and :meth:`full_symmetric_map` give the maps in the files' numbering,
+    one entry per vertex of the source file, ``-1`` for a source vertex that was dropped
+    (they are what ``torchheat match`` writes).
+
+
+    ``map`` and ``symmetric_map`` may be given as zero-argument callables: the dense map is
+    then computed on first access and kept (the refined pipeline's last round is a dense
+    ``n x m`` search, the most expensive single step on large meshes, so a caller that only
+    needs one of the two maps pays for one). :attr:`has_symmetric_map` tells whether there is
+    a symmetric map without computing it. Until then the result keeps references to the two
+    prepared shapes.
+    """
+
+    def __init__(
+        self,
+        map: torch.Tensor | Callable[[], torch.Tensor],
+        landmarks: list,
+        candidates: torch.Tensor,
+        scores: torch.Tensor,
+        symmetric_map: torch.Tensor | Callable[[], torch.Tensor] | None = None,
+        symmetric_landmarks: list | None = None,
+        orientation: float = float("nan"),
+        info: dict | None = None,
+        *,
+        source_vertex_map: torch.Tensor | None = None,
+        target_vertex_map: torch.Tensor | None = None,
+        n_source_input: int | None = None,
+    ) -> None:
+        self._map = map
+        self._symmetric_map = symmetric_map
+        self.landmarks = landmarks
+        self.candidates = candidates
+        self.scores = scores
+        self.symmetric_landmarks = symmetric_landmarks
+        self.orientation = orientation
+        self.info = {} if info is None else info
+        if source_vertex_map is not None and n_source_input is None:
+            raise ValueError("source_vertex_map needs n_source_input (the number of vertices "
+                             "of the source file)")
+        self.source_vertex_map = source_vertex_map
+        self.target_vertex_map = target_vertex_map
+        self.n_source_input = n_source_input
+
+    @property
+    def map(self) -> torch.Tensor:
+        if callable(self._map):
+            self._map = self._map()
+        return self._map
+
+    @map.setter
+    def map(self, value: torch.Tensor) -> None:
+        self._map = value
+
+    @property
+    def symmetric_map(self) -> torch.Tensor | None:
+        if callable(self._symmetric_map):
+            self._symmetric_map = self._symmetric_map()
+        return self._symmetric_map
+
+    @symmetric_map.setter
+    def symmetric_map(self, value: torch.Tensor | None) -> None:
+        self._symmetric_map = value
+
+    @property
+    def has_symmetric_map(self) -> bool:
+        """Whether a symmetric map was found (without computing it)."""
+        return self._symmetric_map is not None
+
+    def full_map(self) -> torch.Tensor:
+        """The direct map in the numbering of the input files.
+
+        Returns
+        -------
+        torch.Tensor
+            int64, shape (n_source_input,): for every vertex of the source *file*, the index
+            in the target *file* of its image, or ``-1`` if the vertex was dropped by
+            ``largest_component=True``. Equal to :attr:`map` when no vertex was dropped.
+
+        Examples
+        --------
+        >>> import numpy as np, trimesh
+        >>> from torchheat import Mesh, match
+        >>> m = trimesh.creation.icosphere(2)
+        >>> V = m.vertices * [1.0, 0.8, 0.6]
+        >>> V2 = np.vstack([V, V[:3] + [5.0, 0, 0]])  # plus a stray triangle, far away
+        >>> F2 = np.vstack([m.faces, [[162, 163, 164]]])
+        >>> M = Mesh(V2, F2, largest_component=True)  # the triangle's vertices are dropped
+        >>> corr = match(M, M, method="paper")
+        >>> corr.map.shape, corr.full_map().shape
+        (torch.Size([162]), torch.Size([165]))
+        >>> corr.full_map()[-3:].tolist()
+        [-1, -1, -1]
+        """
+        return self._in_files(self.map)
+
+    def full_symmetric_map(self) -> torch.Tensor | None:
+        """:attr:`symmetric_map` in the numbering of the input files (see :meth:`full_map`).
+
+        Returns
+        -------
+        torch.Tensor or None
+            int64, shape (n_source_input,), ``-1`` for dropped source vertices; None when
+            there is no symmetric map.
+        """
+        return self._in_files(self.symmetric_map)
+
+    def _in_files(self, f: torch.Tensor | None) -> torch.Tensor | None:
+        if f is None:
+            return None
+        if self.target_vertex_map is not None:
+            f = self.target_vertex_map.to(f.device)[f]
+        svm = self.source_vertex_map
+        if svm is None or svm.numel() == self.n_source_input:
+            return f  # nothing dropped: vertex_map is the identity
+        full = torch.full((int(self.n_source_input),), -1, dtype=f.dtype, device=f.device)
+        full[svm.to(f.device)] = f
+        return full
+
+    def __repr__(self) -> str:
+        n = "lazy" if callable(self._map) else tuple(self._map.shape)
+        return (f"Correspondence(map={n}, landmarks={len(self.landmarks)}, "
+                f"symmetric={self.has_symmetric_map}, orientation={self.orientation:+.3f})")
+
+
+def _numbering(src: PreparedShape, tgt: PreparedShape) -> dict:
+    """The vertex numbering of the files behind two prepared shapes (Correspondence args);
+    None for a mesh that kept all its vertices."""
+    def vertex_map(mesh: Mesh) -> torch.Tensor | None:
+        return None if mesh.n_vertices == mesh.n_input_vertices else mesh.vertex_map
+
+    return {"source_vertex_map": vertex_map(src.mesh), "target_vertex_map": vertex_map(tgt.mesh),
+            "n_source_input": src.mesh.n_input_vertices}
