@@ -123,7 +123,8 @@ def mutated(draw, text: str) -> str:
     lines = text.splitlines()
     for _ in range(draw(st.integers(1, 3))):
         op = draw(st.sampled_from(
-            ["token", "token", "dup", "del", "swap", "truncate", "corner", "count", "insert"]
+            ["token", "token", "dup", "del", "swap", "truncate", "corner", "count", "insert",
+             "shift"]
         ))
         if not lines:
             break
@@ -155,6 +156,9 @@ def mutated(draw, text: str) -> str:
                 j = draw(st.sampled_from(nums))
                 toks[j] = str(draw(st.integers(-2, 40) | st.sampled_from([10**9, 2**31, 2**64])))
                 lines[i] = " ".join(toks)
+        elif op == "shift" and i + 1 < len(lines) and len(toks) > 1:  # a number moves down
+            lines[i] = " ".join(toks[:-1])
+            lines[i + 1] = lines[i + 1] + " " + toks[-1]
         elif op == "insert":
             lines.insert(i, draw(st.text(alphabet="0123456789 .-efnaiv/#\t", max_size=12)))
     return "\n".join(lines) + draw(st.sampled_from(["\n", "", "\r\n", "\n\n"]))

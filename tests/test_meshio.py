@@ -368,6 +368,8 @@ def test_off_variants(tmp_path):
         ("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 0 2\n", "face 0 (line 7) repeats"),
         ("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 1\n", "face 0 (line 7) has 2 corners"),
         ("NOT AN OFF\n", "does not start with 'OFF'"),
+        # a short and a long vertex line: the old fast reader shifted coordinates silently
+        ("OFF\n3 1 0\n0 0 0 1\n1 0\n0 1 0\n3 0 1 2\n", "cannot parse vertex 1 on line 4"),
     ],
 )
 def test_off_errors(tmp_path, text, phrase):
@@ -519,3 +521,22 @@ def test_quad_dominant_spot_matches_one_line_per_vertex(spot_quads, tmp_path, ca
     m = np.array(out.read_text().split(), dtype=np.int64)
     assert m.shape == (len(V),)
     assert m.min() >= 0 and m.max() < len(V)
+
+
+def test_cli_matches_stl_to_glb(tmp_path, capsys):
+    from torchheat.cli import main
+
+    V, F = generic_sphere(2, seed=8)
+    m = trimesh.Trimesh(V, F, process=False)
+    write(tmp_path / "a.stl", trimesh.exchange.stl.export_stl(m))
+    m.export(tmp_path / "b.glb")
+    out = tmp_path / "map.txt"
+    rc = main(["match", str(tmp_path / "a.stl"), str(tmp_path / "b.glb"), "-o", str(out),
+               "--threads", "1"])
+    assert rc == 0, capsys.readouterr().err
+    Vs = read_arrays(tmp_path / "a.stl")[0]
+    m = np.array(out.read_text().split(), dtype=np.int64)
+    assert m.shape == (len(Vs),) == (len(V),)
+    # same shape, STL numbering (first appearance) vs GLB numbering (file order): compare points
+    Vb = read_arrays(tmp_path / "b.glb")[0]
+    assert np.median(np.linalg.norm(Vb[m] - Vs, axis=1)) < 1e-6

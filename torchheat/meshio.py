@@ -77,9 +77,9 @@ MERGED_FORMATS: tuple[str, ...] = (".stl", ".glb", ".gltf")
 SUPPORTED_FORMATS: tuple[str, ...] = ORDER_KEEPING_FORMATS + MERGED_FORMATS
 #: One line for a command's ``--help`` about formats.
 FORMATS_HELP = (
-    "Meshes: OFF, OBJ, PLY (vertex order kept; polygons triangulated), STL, GLB, glTF "
-    "(duplicate vertices merged: vertex order, and the map's line order, is order of first "
-    "appearance in the file)."
+    "Meshes: OFF, OBJ and PLY keep their vertex order (polygons are triangulated); STL, GLB "
+    "and glTF have duplicate vertices merged: one map line per merged vertex, in order of "
+    "first appearance."
 )
 
 # a triangle of a triangulated polygon must have a signed area above this fraction of the
@@ -539,6 +539,8 @@ def _parse_off(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     if nv <= 0 or nf <= 0 or len(lines) != start + nv + nf:
         return None
+    if any(len(ln.split()) != 3 for ln in lines[start : start + nv]):  # ~10 ms for 60k
+        return None  # (a short line and a long one would shift coordinates silently)
     V = _parse_numbers(" ".join(lines[start : start + nv]), np.float64, 3 * nv)
     F = _parse_numbers(" ".join(lines[start + nv :]), np.int64, 4 * nf)
     if V is None or F is None:
