@@ -1,9 +1,11 @@
 """Fuzzed mesh files: every input ends in a clean MeshError or in a mesh that validates.
 
-Property-based tests (hypothesis) over the OFF, OBJ and PLY readers of
+Property-based tests (hypothesis) over the OFF, OBJ and PLY (ASCII) readers of
 :mod:`torchheat.meshio`: truncations, random bytes, wrong header counts, odd numbers (``nan``,
-``inf``, ``1e400``, ``-1``, words), duplicated / deleted / swapped lines, repeated corners and
-indices out of range, on small meshes of triangles, quads and pentagons. Each case must give
+``inf``, ``1e400``, ``-1``, words), duplicated / deleted / swapped / shifted lines, repeated
+corners and indices out of range, on small meshes of triangles, quads and a non-convex
+hexagon; also binary PLY (header and byte mutations), binary STL and GLB (random bytes) and
+:func:`~torchheat.meshio.triangulate_polygons` on arbitrary corner lists. Each case must give
 either a :class:`~torchheat.meshio.MeshError` or arrays ``(V, F)`` that
 :class:`~torchheat.mesh.Mesh` accepts or refuses with a ``MeshError``: never another exception
 type, never a hang (hypothesis' ``deadline`` bounds each case). A last test feeds mutated OFF
@@ -52,7 +54,7 @@ def cube_quads() -> tuple[np.ndarray, list[list[int]]]:
 
 
 def mixed_polygons() -> tuple[np.ndarray, list[list[int]]]:
-    """A square pyramid with an L-shaped (hexagon) base: triangles, a quad-free mix."""
+    """A pyramid over an L-shaped hexagon: six triangles and a non-convex hexagon."""
     base = [[0, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0]]
     V = np.array(base + [[0.8, 0.8, 1.5]], dtype=float)
     F = [[5, 4, 3, 2, 1, 0]] + [[i, (i + 1) % 6, 6] for i in range(6)]

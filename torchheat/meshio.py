@@ -260,10 +260,11 @@ def _triangulate_group(V: np.ndarray, P: np.ndarray) -> np.ndarray:
     their first corner (validation then reports them).
     """
     with np.errstate(all="ignore"):  # inf / nan coordinates: such polygons are fanned
-        return _triangulate_group_(V, P)
+        return _fan_or_ear_clip(V, P)
 
 
-def _triangulate_group_(V: np.ndarray, P: np.ndarray) -> np.ndarray:
+def _fan_or_ear_clip(V: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """:func:`_triangulate_group` without the floating-point error guard."""
     n, k = P.shape
     out = np.empty((n, k - 2, 3), dtype=np.int64)
     if n == 0:
@@ -308,7 +309,7 @@ def _triangulate_group_(V: np.ndarray, P: np.ndarray) -> np.ndarray:
 def _collapse_repeats(
     path: Path, counts: np.ndarray, corners: np.ndarray, locate: Callable[[int], str]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Drop a polygon corner equal to the previous one (``4 a b c c`` is a triangle).
+    """Drop a polygon corner equal to the next one (``4 a b c c`` is the triangle ``a b c``).
 
     Polygons with other repeated corners are refused; triangles are left to validation.
     """
@@ -324,7 +325,7 @@ def _collapse_repeats(
     pieces = np.split(corners, starts[1:])
     for j in sorted(fix):
         c = pieces[j]
-        keep = c != np.roll(c, -1)  # the last of a run of equal corners goes
+        keep = c != np.roll(c, -1)  # one corner of each (cyclic) run of equal corners
         c2 = c[keep] if keep.any() else c[:1]
         if c2.size < 3 or np.unique(c2).size != c2.size:
             raise MeshError(
