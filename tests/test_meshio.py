@@ -304,6 +304,33 @@ def test_binary_big_endian_ply_with_extra_properties(tmp_path, uniform):
     assert signed_areas(V, F2, np.array([0, 0, 1.0])).sum() == pytest.approx(area)
 
 
+def _tri_ply(count_type: str, count: int) -> bytes:
+    head = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+        "property float y\nproperty float z\nelement face 1\n"
+        f"property list {count_type} int vertex_indices\nend_header\n"
+    ).encode()
+    code = {"uint": "I", "char": "b", "uchar": "B"}[count_type]
+    body = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
+    return head + body + struct.pack(f"<{code}3i", count, 0, 1, 2)
+
+
+@pytest.mark.parametrize(
+    ("raw", "phrase"),
+    [
+        (_tri_ply("uint", 2**32 - 1), "past the end of the file"),  # numpy refused the dtype
+        (_tri_ply("char", -3), "negative length"),  # numpy refused the dtype
+        (_tri_ply("uchar", 3)[:-5], "past the end of the file"),
+        (_tri_ply("uchar", 3).replace(b"face 1", b"face 99999999999999"), "past the end"),
+    ],
+)
+def test_binary_ply_bad_list_counts(tmp_path, raw, phrase):
+    path = write(tmp_path / "counts.ply", raw)
+    with pytest.raises(MeshError, match=phrase):
+        read_arrays(path)
+    assert read_arrays(write(tmp_path / "ok.ply", _tri_ply("uchar", 3)))[1].tolist() == [[0, 1, 2]]
+
+
 @pytest.mark.parametrize(
     ("text", "phrase"),
     [
