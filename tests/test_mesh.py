@@ -94,9 +94,9 @@ def test_directory(tmp_path):
 
 
 def test_unknown_extension(tmp_path):
-    path = write(tmp_path, "tri.stl", "solid x\nendsolid x\n")
-    msg = assert_mesh_error(path, "unsupported mesh format", ".obj", ".off", ".ply")
-    assert "'.stl'" in msg
+    path = write(tmp_path, "tri.xyz", "0 0 0\n1 0 0\n")
+    msg = assert_mesh_error(path, "unsupported mesh format", ".obj", ".off", ".ply", ".stl")
+    assert "'.xyz'" in msg
 
 
 @pytest.mark.parametrize(
@@ -146,31 +146,36 @@ def test_no_faces(tmp_path, name, text):
 
 
 @pytest.mark.parametrize(
-    ("name", "text"),
+    ("name", "text", "n_faces"),
     [
-        ("quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n"),
+        ("quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n", 2),
         (
             "mixed.off",
             "OFF\n5 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 2 0\n3 1 4 2\n4 0 1 2 3\n",
+            3,
         ),
-        ("quad.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n"),
+        ("quad.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n", 2),
         (
             "quad.ply",
             "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
             "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
             "end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n",
+            2,
         ),
     ],
 )
-def test_non_triangle_faces(tmp_path, name, text):
-    path = write(tmp_path, name, text)
-    assert_mesh_error(path, "non-triangle faces", "triangulate it first")
+def test_polygon_faces_are_triangulated(tmp_path, name, text, n_faces):
+    # polygons are cut into triangles (tests/test_meshio.py has the details); vertices kept
+    mesh = load_mesh(write(tmp_path, name, text))
+    assert mesh.n_faces == n_faces
+    assert mesh.vertices[:4].tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    assert mesh.area() == pytest.approx(1.5 if name == "mixed.off" else 1.0)
 
 
-def test_non_triangle_obj_reports_line(tmp_path):
-    text = "# quad\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4 2\n"
-    path = write(tmp_path, "quad2.obj", text)
-    assert_mesh_error(path, "1 face not triangles", "line 7", "4 corners")
+def test_face_with_two_corners_reports_line(tmp_path):
+    text = "# edge\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3\n"
+    path = write(tmp_path, "edge.obj", text)
+    assert_mesh_error(path, "face 1 (line 7) has 2 corners", "at least three")
 
 
 @pytest.mark.parametrize("ext", [".off", ".obj", ".ply"])

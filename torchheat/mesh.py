@@ -8,9 +8,10 @@ Conventions
   new coordinates on the same connectivity.
 * **Vertex order is sacred.** Ground-truth correspondences of shape-matching benchmarks (TOSCA,
   SCAPE, KIDS, ...) are given as vertex indices, so :func:`load_mesh` never merges, splits,
-  reorders or drops vertices. Files are read by :mod:`torchheat.meshio` (small parsers for
-  ASCII OFF and OBJ, ``trimesh.load(..., process=False)`` for the rest; OBJ never goes to
-  trimesh, which splits vertices along texture seams).
+  reorders or drops the vertices of OFF, OBJ and PLY files (polygons are triangulated). STL
+  (a triangle soup), GLB and glTF files have their exact-duplicate vertices merged, in order
+  of first appearance. Files are read by :mod:`torchheat.meshio`, whose docstring has the
+  details.
   The only exception is ``largest_component=True`` (``--largest-component`` on the command
   line), which drops the vertices outside the largest connected component and records, in
   :attr:`Mesh.vertex_map`, the index each kept vertex had in the input
@@ -564,13 +565,13 @@ def load_mesh(
     check: bool = True,
     largest_component: bool = False,
 ) -> Mesh:
-    """Load a triangle mesh from an OFF, PLY or OBJ file, preserving the vertex order.
+    """Load a mesh from an OFF, OBJ, PLY (vertex order kept), STL, GLB or glTF file.
 
     Parameters
     ----------
     path : str or os.PathLike
-        File to read; the format comes from the extension (``.off``, ``.ply``, ``.obj``,
-        case-insensitive).
+        File to read; the format comes from the extension (``.off``, ``.obj``, ``.ply``,
+        ``.stl``, ``.glb``, ``.gltf``, case-insensitive).
     check : bool, default True
         Validate the mesh (see :class:`Mesh`).
     largest_component : bool, default False
@@ -584,7 +585,7 @@ def load_mesh(
     Raises
     ------
     MeshError
-        Missing, unreadable or unsupported file, no faces, non-triangle faces, or any
+        Missing, unreadable or unsupported file, no faces, malformed faces, or any
         validation failure listed in the module docstring.
 
     Warns
@@ -594,11 +595,9 @@ def load_mesh(
 
     Notes
     -----
-    Plain ASCII triangle OFF files are read by a small parser; other OFF and PLY files with
-    ``trimesh.load(path, process=False, force="mesh")``. OBJ is read
-    by a small parser that keeps only ``v`` lines and the first index of every ``f`` corner
-    (``f 1/2/3 ...``, ``f 1//3 ...``, negative relative indices), so texture seams do not
-    split vertices as they do in trimesh.
+    Files are read by :func:`torchheat.meshio.read_arrays`: OFF, OBJ and PLY keep every
+    vertex in file order (polygons are triangulated); STL, GLB and glTF have their
+    exact-duplicate vertices merged, in order of first appearance.
 
     Examples
     --------
