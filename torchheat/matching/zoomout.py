@@ -1,0 +1,200 @@
+"""Spectral refinement of point maps: ZoomOut (Melzi, Ren, Rodolà, Sharma, Wonka, Ovsjanikov,
+*ZoomOut: Spectral Upsampling for Efficient Shape Correspondence*, SIGGRAPH Asia 2019).
+
+A point map ``T: M -> N`` pulls functions back, ``f -> f o T``; in the Laplace–Beltrami
+eigenbases ``Phi_M`` (``n x k``) and ``Phi_N`` (``m x k``) this is the ``k x k`` functional map
+``C`` with ``Phi_M C ~ Phi_N[T]`` (least squares over the source points, Melzi et al. eq. 1).
+Conversely ``C`` gives a point map by nearest neighbour: ``T(x) = argmin_y |Phi_M[x] -
+Phi_N[y] C^T|`` (eq. 3). ZoomOut alternates the two while the basis grows from ``k_start`` to
+``k_end`` modes: each step adds frequencies the previous map already determines, so a coarse
+map (here: a heat-kernel map from one point) becomes a fine one, and a map that is not close to
+an isometry does not converge to a good alignment (its residual stays high), which
+:mod:`.pipeline` uses to choose among hypotheses.
+
+Cost per step: a ``k x k`` least-squares solve on ``s`` source samples and an exact
+nearest-neighbour search of ``s`` queries among ``m`` targets in ``k`` dimensions (one GEMM,
+``O(s m k)``); the dense map at the end is one exact cluster-pruned search over all ``n``
+source vertices (:func:`~torchheat.matching.nn._nn_factors_pruned`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..heat import threads
+from .nn import _blocked_argmin, _Factors, _nn_factors_pruned
+from .prepared import PreparedShape, _fps
+
+__all__ = ["functional_map", "spectral_map", "zoomout", "ZoomOutResult"]
+
+_ZO_DTYPE = torch.float32  # the sample steps; the dense map is float64 (exact pruning)
+
+
+@dataclass
+class ZoomOutResult:
+    """The outcome of :func:`zoomout`.
+
+    Attributes
+    ----------
+    rows : torch.Tensor, int64, shape (s,)
+        Source samples the map was refined on.
+    images : torch.Tensor, int64, shape (s,)
+        Their images on the target after the last step.
+    C : torch.Tensor, float64, shape (k, k)
+        The functional map at the last size ``k`` (``Phi_M C ~ Phi_N[T]``).
+    residual : float
+        Mean squared spectral distance ``|Phi_M[x] - Phi_N[T x] C^T|^2`` of the samples at the
+        last step, divided by ``k``: how well the map aligns the two eigenbases (lower is
+        better; comparable between hypotheses refined to the same ``k``).
+    """
+
+    rows: torch.Tensor
+    images: torch.Tensor
+    C: torch.Tensor
+    residual: float
+
+
+def functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch.Tensor,
+                   images: torch.Tensor, k: int) -> torch.Tensor:
+    """The ``k x k`` functional map of a point map known on source samples.
+
+    Least squares ``min_C |Phi_M[rows, :k] C - Phi_N[images, :k]|_F`` (Melzi et al. 2019,
+    eq. 1 with the pseudo-inverse on the samples); needs ``len(rows) >= k`` well-spread
+    samples (farthest-point samples are).
+
+    Parameters
+    ----------
+    phi_s : torch.Tensor, shape (n, K)
+        Source eigenbasis (columns mass-orthonormal), ``K >= k``.
+    phi_t : torch.Tensor, shape (m, K)
+        Target eigenbasis.
+    rows : torch.Tensor, int64, shape (s,)
+    images : torch.Tensor, int64, shape (s,)
+        Target vertex of every source sample.
+    k : int
+
+    Returns
+    -------
+    torch.Tensor, shape (k, k), dtype of the bases
+
+    Examples
+    --------
+    >>> phi = torch.linalg.qr(torch.randn(50, 6, dtype=torch.float64))[0]
+    >>> C = functional_map(phi, phi, torch.arange(50), torch.arange(50), 6)
+    >>> bool(torch.allclose(C, torch.eye(6, dtype=torch.float64)))  # the identity map
+    True
+    """
+    return torch.linalg.lstsq(phi_s[rows, :k], phi_t[images, :k]).solution
+
+
+def spectral_map(phi_s: torch.Tensor, phi_t: torch.Tensor, C: torch.Tensor,
+                 rows: torch.Tensor | None = None, memory_bytes: int = 256 * 2**20
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The point map of a functional map: nearest neighbour of ``Phi_M[x]`` among ``Phi_N C^T``.
+
+    Exact brute force in blocks of at most ``memory_bytes`` (one GEMM per block).
+
+    Parameters
+    ----------
+    phi_s : torch.Tensor, shape (n, K)
+    phi_t : torch.Tensor, shape (m, K)
+    C : torch.Tensor, shape (k, k), ``k <= K``
+    rows : torch.Tensor, int64, shape (s,), optional
+        Source vertices to map (default: all).
+
+    Returns
+    -------
+    d2 : torch.Tensor, shape (s,)
+        Squared spectral distances to the images.
+    images : torch.Tensor, int64, shape (s,)
+
+    Examples
+    --------
+    >>> phi = torch.linalg.qr(torch.randn(40, 5, dtype=torch.float64))[0]
+    >>> spectral_map(phi, phi, torch.eye(5, dtype=torch.float64))[1].tolist() == list(range(40))
+    True
+    """
+    k = C.shape[0]
+    X = phi_s[:, :k] if rows is None else phi_s[rows, :k]
+    Y = phi_t[:, :k] @ C.T.to(phi_t.dtype)
+    return _blocked_argmin(X, Y, (X * X).sum(1), (Y * Y).sum(1), memory_bytes)
+
+
+def _sizes(k_start: int, k_end: int, step: int) -> list[int]:
+    sizes = list(range(k_start, k_end, max(1, step)))
+    return [*sizes, k_end]
+
+
+def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
+            seed_images: torch.Tensor, rows: torch.Tensor, *, k_start: int = 16,
+            k_end: int = 100, step: int = 6) -> ZoomOutResult:
+    """ZoomOut from a sparse map: the functional map of ``seed_rows -> seed_images`` at
+    ``k_start`` modes, then point map on ``rows`` / functional map, growing by ``step`` modes
+    to ``k_end`` (Melzi et al. 2019, Alg. 1, on source samples).
+
+    Parameters
+    ----------
+    phi_s, phi_t : torch.Tensor, shapes (n, K) and (m, K)
+        Eigenbases (mass-orthonormal columns, ascending eigenvalues); ``k_end <= K``.
+    seed_rows, seed_images : torch.Tensor, int64, shape (s0,)
+        The starting map on a few source samples; ``s0 >= k_start``.
+    rows : torch.Tensor, int64, shape (s,)
+        Source samples the map is refined on (``s >= k_end``, farthest-point samples).
+    k_start, k_end, step : int
+
+    Returns
+    -------
+    ZoomOutResult
+
+    Notes
+    -----
+    Cost: ``sum_k O(s m k + s k^2)`` over the sizes, about ``s m (k_end^2 - k_start^2) /
+    (2 step)`` multiply-adds: 0.1 s for ``s = 1000``, ``m = 5000``, 16 -> 100 by 6 (one
+    thread, float32).
+
+    Examples
+    --------
+    >>> phi = torch.linalg.qr(torch.randn(300, 30, dtype=torch.float64))[0]
+    >>> perm = torch.randperm(300)
+    >>> r = zoomout(phi[perm], phi, torch.arange(40), perm[:40], torch.arange(300),
+    ...             k_start=8, k_end=30, step=4)
+    >>> bool((r.images == perm).all())  # a permutation is recovered from 40 samples
+    True
+    """
+    k_end = int(min(k_end, phi_s.shape[1], phi_t.shape[1], rows.numel()))
+    k_start = int(max(1, min(k_start, k_end, seed_rows.numel())))
+    Ps, Pt = phi_s.to(_ZO_DTYPE), phi_t.to(_ZO_DTYPE)
+    C = functional_map(Ps, Pt, seed_rows, seed_images, k_start)
+    d2, images = spectral_map(Ps, Pt, C, rows)
+    for k in _sizes(k_start, k_end, step)[1:]:
+        C = functional_map(Ps, Pt, rows, images, k)
+        d2, images = spectral_map(Ps, Pt, C, rows)
+    C = functional_map(phi_s, phi_t, rows, images, k_end)  # float64, of the final images
+    return ZoomOutResult(rows, images, C, float(d2.double().mean()) / k_end)
+
+
+def dense_spectral_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
+                       num_threads: int | None = None) -> torch.Tensor:
+    """The dense point map of a functional map, by an exact cluster-pruned search (float64).
+
+    Parameters
+    ----------
+    src, tgt : PreparedShape
+    C : torch.Tensor, shape (k, k)
+
+    Returns
+    -------
+    torch.Tensor, int64, shape (n,)
+    """
+    k = C.shape[0]
+    phi_s = src.hk.eigenvectors[:, :k].to(torch.float64)
+    phi_t = tgt.hk.eigenvectors[:, :k].to(torch.float64)
+    eye = torch.eye(k, dtype=torch.float64)
+    m = tgt.n
+    centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
+    with threads(num_threads):
+        return _nn_factors_pruned(_Factors(phi_s, eye), None,
+                                  _Factors(phi_t, C.T.to(torch.float64)), centres)[1]
