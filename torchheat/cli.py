@@ -37,6 +37,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from .meshio import FORMATS_HELP
+
 __all__ = ["main", "run", "build_parser", "write_map", "CLIError"]
 
 PROG = "torchheat"
@@ -326,9 +328,30 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
     else:
         print(f"orientation score of the {label}: {o:+.3f} (+1 preserving, -1 reversing)")
     print(f"symmetric alternative: {'found' if corr.has_symmetric_map else 'none'}")
+    q = corr.quality
+    if q is not None:
+        verdict = ("SUSPECT: probably wrong (not near-isometric, or the mirror map)"
+                   if q.suspect else "plausible")
+        print(f"quality of the {label}: {q.quality:.2f} ({verdict}; isometry defect "
+              f"{q.defect:.2f}, 0 = isometric)")
     timings = corr.info.get("timings", {})
     if timings:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))
+
+
+def _write_report(path: Path, corr: Any, source: str, target: str) -> None:
+    import json
+    import re
+
+    rep = {"source": str(source), "target": str(target), **corr.report()}
+    svm, tvm = corr.source_vertex_map, corr.target_vertex_map  # file indices, as the map
+    rep["landmarks"] = [list(p) for p in zip(_in_files([a for a, _ in corr.landmarks], svm),
+                                             _in_files([b for _, b in corr.landmarks], tvm),
+                                             strict=True)]
+    rep["n_source"] = corr.n_source_input or rep["n_source"]
+    text = json.dumps(rep, indent=1)
+    text = re.sub(r"\[\s+(-?\d+),\s+(-?\d+)\s+\]", r"[\1, \2]", text)  # pairs on one line
+    Path(path).write_text(text + "\n")
 
 
 # ------------------------------------------------------------------------------------------
@@ -354,7 +377,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     from .matching import match
 
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
-                 engine=args.engine, num_threads=args.threads)
+                 engine=args.engine, num_threads=args.threads, zoomout=args.zoomout)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -365,6 +388,9 @@ def _cmd_match(args: argparse.Namespace) -> int:
               file=sys.stderr)
     with _outputs() as outs:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
+        if args.report:
+            outs.stage(_check_output(Path(args.report), "report"),
+                       lambda p: _write_report(p, corr, args.source, args.target))
         if sym_out is not None and corr.symmetric_map is not None:
             outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
         if png is not None:
@@ -399,7 +425,8 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
 
     from .matching import symmetry
 
-    corr = symmetry(shape, landmark=landmark, engine=args.engine, num_threads=args.threads)
+    corr = symmetry(shape, landmark=landmark, engine=args.engine, num_threads=args.threads,
+                    zoomout=args.zoomout)
     corr.map  # noqa: B018 - computed on first access: time it here
     elapsed = time.perf_counter() - t_start
     corr.info["timings"] = _timings(t_prep, corr)
@@ -408,6 +435,9 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
               "map is the best direct self-map (close to the identity)", file=sys.stderr)
     with _outputs() as outs:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the file's numbering
+        if args.report:
+            outs.stage(_check_output(Path(args.report), "report"),
+                       lambda p: _write_report(p, corr, args.mesh, args.mesh))
         if png is not None:
             from .viz import color_transfer
 
@@ -538,6 +568,16 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "0: solve in-process)")
 
 
+def _add_refinement(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-zoomout", dest="zoomout", action="store_false",
+                   help="keep the heat-kernel map of the refined pipeline instead of refining "
+                        "it spectrally (ZoomOut, Melzi et al. 2019; the default chooses among "
+                        "hypotheses by it too)")
+    p.add_argument("--report", metavar="PATH.json", default=None,
+                   help="also write a JSON report: files, vertex counts, method, landmarks, "
+                        "orientation, quality (0..1), suspect, timings")
+
+
 def _add_largest_component(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--largest-component", action="store_true",
                    help="for a mesh with several connected components (or unreferenced "
@@ -577,10 +617,12 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser(
         "match", formatter_class=_Formatter,
         help="dense map from a source mesh to a target mesh",
-        description="Match SOURCE to TARGET (OFF, PLY or OBJ; vertex order is kept) and write "
-                    "the map: one 0-based target vertex index per line, one line per source "
-                    "vertex, in source vertex order (-1 for vertices dropped by "
-                    "--largest-component).\n\n"
+        description="Match SOURCE to TARGET and write the map: one 0-based target vertex "
+                    "index per line, one line per source vertex, in source vertex order (-1 "
+                    "for vertices dropped by --largest-component).\n\n"
+                    f"{FORMATS_HELP}\n\n"
+                    "The map's quality (0..1, from its own isometry defect and orientation; "
+                    "'suspect' below 0.25) is printed and written by --report.\n\n"
                     "Each mesh needs at least 100 vertices (the descriptors use 100 "
                     "eigenpairs of its Laplacian) and an interior vertex.\n\n"
                     "--landmarks K > 1 selects method 'paper' (the paper's greedy extra "
@@ -611,6 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--png", metavar="PATH", default=None,
                    help="also write a colour-transfer picture of the map (of the matched "
                         "components with --largest-component)")
+    _add_refinement(m)
     m.set_defaults(func=_cmd_match)
 
     s = sub.add_parser(
@@ -628,6 +671,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_largest_component(s, "self-map")
     s.add_argument("--png", metavar="PATH", default=None,
                    help="also write a colour-transfer picture of the self-map")
+    _add_refinement(s)
     s.set_defaults(func=_cmd_symmetry)
 
     d = sub.add_parser(
@@ -716,6 +760,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)
             return 130
+        except Exception as exc:  # a bug of ours: one line, the traceback on request
+            if os.environ.get("TORCHHEAT_DEBUG"):
+                raise
+            print(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
+                  "(a bug: please report it with the command; TORCHHEAT_DEBUG=1 shows the "
+                  "traceback)", file=sys.stderr)
+            return 3
     print(f"{PROG}: error: {_one_line(msg)}", file=sys.stderr)
     return 1
 

@@ -31,6 +31,7 @@ from .landmarks import (
 )
 from .orientation import _orientation, _triangles
 from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
+from .quality import MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
 from .zoomout import ZoomOutResult, dense_spectral_map, zoomout
@@ -61,7 +62,7 @@ class _Options:
     use_hks: bool
     engine: str
     zoomout: bool = True
-    zoomout_samples: int = 1000
+    zoomout_samples: int = 500
     zoomout_k: int | None = None
     zoomout_hypotheses: int = 4
 
@@ -95,7 +96,7 @@ def match(
     final_map: bool = True,
     background: bool = True,
     zoomout: bool = True,
-    zoomout_samples: int = 1000,
+    zoomout_samples: int = 500,
     zoomout_k: int | None = None,
     zoomout_hypotheses: int = 4,
 ) -> Correspondence:
@@ -298,6 +299,13 @@ def match(
         with _DESC_LOCK:
             shape.__dict__.pop("_desc_cache", None)
     timings["total"] = time.perf_counter() - t_start
+    # orientation of the direct map as measured where it is clear (the ZoomOut map), else on
+    # the dense map when the quality is first asked for
+    o_dir = direct.get("zo_orientation") if method == "refine" else None
+
+    def quality(corr: Correspondence) -> MapQuality:
+        return map_quality(src, tgt, corr.map, o_dir)
+
     return Correspondence(
         **_numbering(src, tgt),
         map=direct["map"],
@@ -307,7 +315,9 @@ def match(
         symmetric_map=None if sym is None else sym["map"],
         symmetric_landmarks=None if sym is None else sym["landmarks"],
         orientation=orient,
+        quality=quality if final_map else None,
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
+              "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "hypothesis_images": hyp_images, "refine_samples": samples,
               "sym_orientation": None if sym is None else sym.get("orientation"),
               "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks"))},
@@ -476,6 +486,8 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
 
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
+_ZO_STEP = 8  # modes added per ZoomOut step
+_ZO_TARGETS = 2000  # farthest-point target samples the ZoomOut steps map to (the dense map: all)
 _ZO_SAME = 0.9  # hypotheses whose sample images agree (within 5 % of the diameter) this often
 _ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
 
@@ -507,7 +519,7 @@ def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tens
     rows = _fps(src, opt.zoomout_samples)
     with threads(opt.num_threads):
         return zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
-                       k_end=k_end)
+                       k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
 
 
 def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
@@ -535,10 +547,11 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     pos = torch.full((src.n,), -1, dtype=torch.int64)
     pos[rows] = torch.arange(rows.numel())
     k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
+    targets = _fps(tgt, _ZO_TARGETS)
     with threads(opt.num_threads):
         for r in cands:
             zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
-                         k_end=k_sel)
+                         k_end=k_sel, step=_ZO_STEP, targets=targets)
             r["zo"] = zo
             r["zo_orientation"] = _orientation(
                 src, tgt, tri, lambda i, f=zo.images: f[pos[i]].numpy())

@@ -9,6 +9,7 @@ import torch
 
 from ..mesh import Mesh
 from .prepared import PreparedShape
+from .quality import MapQuality
 
 __all__ = ["Correspondence"]
 
@@ -44,6 +45,12 @@ class Correspondence:
     n_source_input : int or None
         Number of vertices of the source file (:attr:`Mesh.n_input_vertices`); needed
         with ``source_vertex_map``.
+    quality : MapQuality or None
+        The map's own evidence of being right (:func:`~torchheat.matching.quality.
+        map_quality`: isometry defect of its functional map and its orientation), computed on
+        first access; ``quality.quality`` in [0, 1], higher is better.
+    suspect : bool or None
+        ``quality.suspect``: the map is probably wrong (not near-isometric, or the mirror).
 
     Notes
     -----
@@ -78,8 +85,10 @@ class Correspondence:
         source_vertex_map: torch.Tensor | None = None,
         target_vertex_map: torch.Tensor | None = None,
         n_source_input: int | None = None,
+        quality: MapQuality | Callable[[Correspondence], MapQuality] | None = None,
     ) -> None:
         self._map = map
+        self._quality = quality
         self._symmetric_map = symmetric_map
         self.landmarks = landmarks
         self.candidates = candidates
@@ -93,6 +102,35 @@ class Correspondence:
         self.source_vertex_map = source_vertex_map
         self.target_vertex_map = target_vertex_map
         self.n_source_input = n_source_input
+
+    @property
+    def quality(self) -> MapQuality | None:
+        if callable(self._quality):
+            self._quality = self._quality(self)
+        return self._quality
+
+    @property
+    def suspect(self) -> bool | None:
+        q = self.quality
+        return None if q is None else q.suspect
+
+    def report(self) -> dict:
+        """A JSON-able summary: vertex counts, method, landmarks, orientation, quality,
+        suspect, timings (what ``torchheat match --report`` writes, with the file names)."""
+        q = self.quality
+        o = self.orientation
+        return {
+            "n_source": int(self.map.numel()),
+            "n_target": None if self.info.get("n_target") is None
+            else int(self.info["n_target"]),
+            "method": self.info.get("method"),
+            "zoomout": self.info.get("zoomout"),
+            "landmarks": [[int(a), int(b)] for a, b in self.landmarks],
+            "orientation": None if o != o else float(o),
+            **({} if q is None else q.as_dict()),
+            "symmetric_map": self.has_symmetric_map,
+            "timings": {k: float(v) for k, v in self.info.get("timings", {}).items()},
+        }
 
     @property
     def map(self) -> torch.Tensor:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from ..mesh import Mesh
 from .pipeline import match
 from .prepared import PreparedShape, _as_prepared
+from .quality import map_quality
 from .result import Correspondence, _numbering
 
 __all__ = ["symmetry"]
@@ -58,5 +59,6 @@ def symmetry(
         symmetric_landmarks=corr.landmarks,
         orientation=float("nan") if o is None else float(o),
         info=corr.info,
+        quality=lambda c: map_quality(shape, shape, c.map, None, expect=-1),
         **_numbering(shape, shape),
     )

@@ -130,7 +130,8 @@ def _sizes(k_start: int, k_end: int, step: int) -> list[int]:
 
 def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
             seed_images: torch.Tensor, rows: torch.Tensor, *, k_start: int = 16,
-            k_end: int = 100, step: int = 6) -> ZoomOutResult:
+            k_end: int = 100, step: int = 6, targets: torch.Tensor | None = None
+            ) -> ZoomOutResult:
     """ZoomOut from a sparse map: the functional map of ``seed_rows -> seed_images`` at
     ``k_start`` modes, then point map on ``rows`` / functional map, growing by ``step`` modes
     to ``k_end`` (Melzi et al. 2019, Alg. 1, on source samples).
@@ -144,6 +145,9 @@ def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
     rows : torch.Tensor, int64, shape (s,)
         Source samples the map is refined on (``s >= k_end``, farthest-point samples).
     k_start, k_end, step : int
+    targets : torch.Tensor, int64, shape (t,), optional
+        Target vertices the samples may map to (default: all; a few thousand
+        farthest-point samples cut the cost of each step in proportion).
 
     Returns
     -------
@@ -167,11 +171,15 @@ def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
     k_end = int(min(k_end, phi_s.shape[1], phi_t.shape[1], rows.numel()))
     k_start = int(max(1, min(k_start, k_end, seed_rows.numel())))
     Ps, Pt = phi_s.to(_ZO_DTYPE), phi_t.to(_ZO_DTYPE)
+    tmap = torch.arange(phi_t.shape[0]) if targets is None else targets
+    Pt_sub = Pt if targets is None else Pt[targets]
     C = functional_map(Ps, Pt, seed_rows, seed_images, k_start)
-    d2, images = spectral_map(Ps, Pt, C, rows)
+    d2, j = spectral_map(Ps, Pt_sub, C, rows)
+    images = tmap[j]
     for k in _sizes(k_start, k_end, step)[1:]:
         C = functional_map(Ps, Pt, rows, images, k)
-        d2, images = spectral_map(Ps, Pt, C, rows)
+        d2, j = spectral_map(Ps, Pt_sub, C, rows)
+        images = tmap[j]
     C = functional_map(phi_s, phi_t, rows, images, k_end)  # float64, of the final images
     return ZoomOutResult(rows, images, C, float(d2.double().mean()) / k_end)
 
