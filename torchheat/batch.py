@@ -509,6 +509,9 @@ tosca_remeshed_5k_symmetry`).
                                    solver_src=_geodesics(pair.source).solver,
                                    solver_tgt=geo.solver)
     time_eval = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    quality = corr.quality  # the map's own evidence (no ground truth); timed apart
+    time_quality = time.perf_counter() - t3
     orient = float(corr.orientation)
     rec: dict[str, Any] = {
         "name": pair.name,
@@ -522,6 +525,7 @@ tosca_remeshed_5k_symmetry`).
         "time_prepare": time_prepare,
         "time_match": time_match,
         "time_eval": time_eval,
+        "time_quality": time_quality,
         "timings": {k: float(v) for k, v in corr.info.get("timings", {}).items()},
         "direct": _summary(direct),
         "flip": None if flip_err is None else _summary(flip_err),
@@ -534,6 +538,9 @@ tosca_remeshed_5k_symmetry`).
         "landmarks": [[int(a), int(b)] for a, b in corr.landmarks],
         "orientation": None if math.isnan(orient) else orient,
         "distortion": dist,
+        "quality": None if quality is None else quality.quality,
+        "suspect": None if quality is None else bool(quality.suspect),
+        "defect": None if quality is None else quality.defect,
     }
     if keep_map:
         rec["_arrays"] = {"map": fmap, "gt_src": gs,
@@ -890,6 +897,9 @@ def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, 
         "time_per_pair_s": _nanmean([r.get("time_prepare", 0.0) + r["time_match"]
                                      + r["time_eval"] for r in recs]),
         "distortion": _nanmean([r.get("distortion") for r in recs]),
+        "quality": _nanmean([r.get("quality") for r in recs]),
+        "suspect": sum(bool(r.get("suspect")) for r in recs)
+        if any(r.get("suspect") is not None for r in recs) else None,
     }
 
 
@@ -920,6 +930,10 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
     digits = {"mean_error": 4, "pct_under_0.25": 1, "pct_under_0.1": 1, "pct_under_0.05": 1,
               "flip_pct_under_0.25": 1, "time_match_s": 2, "time_eval_s": 2,
               "time_per_pair_s": 2}
+    if any(r.get("quality") is not None for r in rows):
+        head += ["quality", "suspect"]
+        keys += ["quality", "suspect"]
+        digits["quality"] = 2
     if any(r["distortion"] is not None for r in rows):
         head.append("distortion")
         keys.append("distortion")
@@ -928,7 +942,9 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
              "Errors: geodesic distance to the ground truth / sqrt(target area) (Kim et al. "
              "2011), averaged per pair, then over pairs (every pair weighs the same). "
              "Flip-aware: the direct or the symmetric ground truth, whichever fits the whole "
-             "map better. Times: prepare + match, evaluation.", ""]
+             "map better. Times: prepare + match, evaluation. Quality: the map's own evidence "
+             "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25.",
+             ""]
     for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
         sel = [r for r in rows if r["level"] == level]
         if not sel:
