@@ -788,7 +788,7 @@ def _within_class_pairs(shapes: ShapeCollection, mode: str) -> list[tuple[int, i
 
 def folder(
     path: PathLike,
-    pattern: str = "*.off|*.ply|*.obj",
+    pattern: str = "*.off|*.ply|*.obj|*.stl|*.glb|*.gltf",
     classes: Sequence[str] | None = None,
     **kw: Any,
 ) -> ShapeCollection:
