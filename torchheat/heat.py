@@ -259,6 +259,33 @@ def _flush_denormal(enabled: bool):
             torch.set_flush_denormal(False)
 
 
+# Working-set budget (bytes) of one Chebyshev block: the recurrence's staging buffer, its
+# weighted sums and their result, ``m (steps + 2 Jc + 1)`` elements per source (m vertices,
+# Jc Chebyshev times, ``steps`` = :func:`_staged_steps`). The default block of 64 sources fits
+# up to ~40k vertices (float64, 10 times, 32 steps); larger meshes get proportionally fewer
+# sources per block, so that memory grows linearly with the mesh (64 sources of a 300k-vertex
+# mesh would hold 7.6 GiB). Columns do not depend on the block they are computed in (tested).
+CHEBYSHEV_BYTES = 1 << 30
+
+
+def _staged_steps(degree: int) -> int:
+    """Recurrence steps staged per GEMM in :meth:`HeatKernel._chebyshev`."""
+    return max(3, min(32, int(degree) + 1))
+
+
+def _chebyshev_block(m: int, n_times: int, degree: int, esize: int, block: int,
+                     memory_bytes: int = CHEBYSHEV_BYTES) -> int:
+    """Sources per Chebyshev block: at most ``block``, within ``memory_bytes``, at least 1.
+
+    Examples
+    --------
+    >>> _chebyshev_block(10_000, 10, 300, 8, 64), _chebyshev_block(300_000, 10, 300, 8, 64)
+    (64, 8)
+    """
+    per_source = m * (_staged_steps(degree) + 2 * n_times + 1) * esize
+    return int(max(1, min(int(block), int(memory_bytes) // max(1, per_source))))
+
+
 @dataclass
 class _Plan:
     spectral: np.ndarray  # bool [J]
@@ -299,7 +326,8 @@ class HeatKernel:
         Where the recurrence and products run (``"cpu"`` default; ``"cuda"`` works too).
     block : int
         Sources per Chebyshev block (default 64; 256 columns cost 5–12x what 64 do on CPU
-        because of cache misses).
+        because of cache misses); fewer on large meshes, so that a block's working set stays
+        within ``CHEBYSHEV_BYTES`` (1 GiB; 8 sources of a 300k-vertex mesh at 10 times).
     num_threads : int, optional
         torch intra-op threads during queries (default: torch's setting).
     eigenpairs : tuple (eigenvalues [k], eigenvectors [n, k]), optional
@@ -613,7 +641,7 @@ class HeatKernel:
         )
         # T_k are staged in a buffer of `chunk` steps; the weighted sums over all times are
         # then one GEMM per chunk, [Jc, chunk] x [chunk, m B], instead of Jc axpys per step.
-        chunk = max(3, min(32, K + 1))
+        chunk = _staged_steps(K)
         buf = torch.empty((chunk, m * B), dtype=dt, device=dev)
         acc = torch.zeros((len(tj), m * B), dtype=dt, device=dev)
         X2 = self._X2
@@ -638,10 +666,12 @@ class HeatKernel:
         return out.permute(1, 2, 0)  # [m, B, Jc]
 
     def _chebyshev_blocked(self, red, tj, degrees) -> torch.Tensor:
+        block = _chebyshev_block(self._idx.size, len(tj), int(np.max(degrees)),
+                                 self.dtype.itemsize, self.block, CHEBYSHEV_BYTES)
         parts = []
         with _flush_denormal(self.dtype == torch.float32), threads(self.num_threads):
-            for s in range(0, red.size, self.block):
-                parts.append(self._chebyshev(red[s : s + self.block], tj, degrees))
+            for s in range(0, red.size, block):
+                parts.append(self._chebyshev(red[s : s + block], tj, degrees))
         return torch.cat(parts, dim=1)
 
     def columns(

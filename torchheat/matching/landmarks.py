@@ -16,7 +16,7 @@ from ..descriptors import (
     heat_kernel_map,
     ring_neighbors,
 )
-from .nn import _kdtree, nearest_neighbors
+from .nn import WORK_BYTES, _kdtree, _rows_within, nearest_neighbors
 from .prepared import PreparedShape, _descriptor, _fps
 
 __all__ = ["landmark_scores", "dense_map"]
@@ -32,7 +32,7 @@ def landmark_scores(
     use_hks: bool = True,
     engine: str = "auto",
     samples: torch.Tensor | None = None,
-    memory_bytes: int = 256 * 2**20,
+    memory_bytes: int = WORK_BYTES,
 ) -> torch.Tensor:
     """Score every candidate ``q`` for the source landmark ``p``.
 
@@ -54,6 +54,9 @@ def landmark_scores(
         See :func:`nearest_neighbors`.
     samples : torch.Tensor, optional
         Source vertices x summed over (default: all).
+    memory_bytes : int
+        Working-set budget: the candidates' heat-kernel columns (``c x m x J``) are
+        computed in batches within it, and it is the cdist engine's block budget.
 
     Returns
     -------
@@ -77,20 +80,25 @@ def landmark_scores(
     Dp = _descriptor(source, ps, use_hks)
     if samples is not None:
         Dp = Dp[samples]
-    Cq = target.hk.columns(cand, certify=False)  # [c, m, J]: all candidates, one call
+    # the candidates' columns [c, m, J] in as few calls as fit the budget (off the spectral
+    # fast path, columns() stages up to two more copies of its result)
     J = target.hk.times.numel()
+    step = _rows_within(target.n * J * target.hk.dtype.itemsize, cand.numel(), memory_bytes)
     fixed = heat_kernel_map(target.hk, qf) if qf else None
-    t = target.hk.times.to(Cq.dtype)
     scores = torch.empty(cand.numel(), dtype=torch.float64)
-    for i in range(cand.numel()):
-        parts = [] if fixed is None else [fixed]
-        parts.append(Cq[i] * t)
-        if use_hks:
-            parts.append(target.hks.to(Cq.dtype))
-        Dq = torch.cat(parts, dim=1)
-        d, _ = nearest_neighbors(Dp, Dq, p=math.inf, engine=engine, memory_bytes=memory_bytes)
-        scores[i] = float((d.double() ** 2).mean())
-    del J
+    for c0 in range(0, cand.numel(), step):
+        Cq = target.hk.columns(cand[c0 : c0 + step], certify=False)
+        t = target.hk.times.to(Cq.dtype)
+        for i in range(Cq.shape[0]):
+            parts = [] if fixed is None else [fixed]
+            parts.append(Cq[i] * t)
+            if use_hks:
+                parts.append(target.hks.to(Cq.dtype))
+            Dq = torch.cat(parts, dim=1)
+            d, _ = nearest_neighbors(Dp, Dq, p=math.inf, engine=engine,
+                                     memory_bytes=memory_bytes)
+            scores[c0 + i] = float((d.double() ** 2).mean())
+        del Cq
     return scores
 
 
@@ -159,7 +167,7 @@ def _sample_map(src, tgt, lms, rows, use_hks, engine) -> tuple[torch.Tensor, tor
 
 
 def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
-               radius: float) -> int | None:
+               radius: float, memory_bytes: int = WORK_BYTES) -> int | None:
     """Second source landmark if the one-point map of ``p`` is ambiguous, else None.
 
     The map from ``p`` alone is ambiguous when a self-isometry of the source fixes ``p``
@@ -167,7 +175,8 @@ def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | N
     *twin* ``x'``, far from ``x``, whose descriptor is ten times closer to ``x``'s than any
     mesh neighbour's. The twins are found by a 2-NN self-search of the descriptor on 256
     spread samples (the first ``rows``); if more than a quarter of them qualify, the vertex
-    farthest from its twin is returned: its image separates the two maps.
+    farthest from its twin is returned: its image separates the two maps. The descriptor
+    differences along the mesh edges are taken in blocks within ``memory_bytes``.
     """
     D = _descriptor(src, [p], use_hks).double().cpu().numpy()
     V, _ = src.mesh.numpy()
@@ -177,9 +186,12 @@ def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | N
     twin = np.where(first_is_self, idx[:, 1], idx[:, 0])
     dtwin = np.where(first_is_self, dist[:, 1], dist[:, 0])
     A = ring_neighbors(src.mesh, 1).tocoo()
-    dedge = np.abs(D[A.row] - D[A.col]).max(axis=1)
     dlocal = np.full(src.n, np.inf)
-    np.minimum.at(dlocal, A.row, dedge)
+    # |D[a] - D[b]|_inf over the edges: three [edges, d] arrays per block
+    step = _rows_within(3 * D.shape[1] * D.itemsize, A.nnz, memory_bytes)
+    for e0 in range(0, A.nnz, step):
+        a, b = A.row[e0 : e0 + step], A.col[e0 : e0 + step]
+        np.minimum.at(dlocal, a, np.abs(D[a] - D[b]).max(axis=1))
     sep = np.linalg.norm(V[r] - V[twin], axis=1)
     qual = (sep > radius) & (dtwin < 0.1 * dlocal[r])
     if qual.mean() <= 0.25:

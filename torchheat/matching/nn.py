@@ -34,6 +34,26 @@ class _Budget:
 
 LAST_CDIST_PEAK = _Budget()
 
+# Working-set budget (bytes) of one block of every blocked computation of matching: cdist
+# blocks, the candidates' heat-kernel columns of the landmark score, the cluster blocks of
+# the pruned dense search, the edge differences of the ambiguity test. Each block stays
+# within it, so that memory grows linearly with the mesh size (a 300k-vertex pair was
+# measured in BENCHMARKS.md "Big meshes"). Blocks that fit are never split: the results do
+# not depend on it (tested against unblocked computations).
+WORK_BYTES = 256 * 2**20
+
+
+def _rows_within(row_bytes: int, rows: int, memory_bytes: int) -> int:
+    """Rows per block so that a block of ``rows_per_block * row_bytes`` bytes fits
+    ``memory_bytes``: all ``rows`` when they fit, never fewer than one.
+
+    Examples
+    --------
+    >>> _rows_within(100, 50, 10_000), _rows_within(100, 50, 1_000), _rows_within(100, 50, 1)
+    (50, 10, 1)
+    """
+    return int(max(1, min(int(rows), int(memory_bytes) // max(1, int(row_bytes)))))
+
 
 def _block_bytes(r: int, c: int, d: int, esize: int, euclid: bool) -> int:
     extra = (r + c) * (2 * d + 4) * esize if euclid else 0
@@ -105,7 +125,7 @@ def nearest_neighbors(
     Y: torch.Tensor,
     p: float = math.inf,
     engine: str = "auto",
-    memory_bytes: int = 256 * 2**20,
+    memory_bytes: int = WORK_BYTES,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact nearest neighbour in ``Y`` of every row of ``X`` under the Minkowski p-norm.
 
@@ -184,7 +204,7 @@ def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torc
 
 
 def _nn_factors(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
-                memory_bytes: int = 256 * 2**20) -> tuple[torch.Tensor, torch.Tensor]:
+                memory_bytes: int = WORK_BYTES) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest neighbour in L2 of the rows ``rows`` of ``X``'s descriptor among ``Y``'s.
 
     ``|x - y|^2 = |x|^2 + |y|^2 - 2 Ps(x) (Cs Ct^T) Pt(y)^T``: the big product has the inner
@@ -209,7 +229,7 @@ def _nn_factors(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
 
 
 def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
-                       centres: torch.Tensor, memory_bytes: int = 256 * 2**20
+                       centres: torch.Tensor, memory_bytes: int = WORK_BYTES
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`_nn_factors` (both factored) with exact cluster pruning, for dense maps.
 
@@ -220,7 +240,10 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     clusters with ``d_c - r_c <= b(x)`` are searched. Same minimum as the brute force (up to
     float64 rounding; ties between clusters go to the first cluster searched). Measured on a
     SCAPE pair with 447 centres: 1.2 % of the ``n m`` pairs are searched, the rest is pruned.
-    Cost: ``O((n + m) C k)`` for the centres plus the searched pairs.
+    Cost: ``O((n + m) C k)`` for the centres plus the searched pairs. Memory: blocks of query
+    rows against all centres, and of query rows against one cluster's members, each within
+    ``memory_bytes`` (a cluster can be 20x its average size: 2715 members for a mean of 122
+    on a 239k-vertex KIDS target).
     """
     Ps = X.P if rows is None else X.P[rows]
     Pt, Pc = Y.P, Y.P[centres]
@@ -250,11 +273,17 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
         for c in torch.nonzero(need.any(dim=0)).flatten().tolist():
             xi = torch.nonzero(need[:, c]).flatten()
             mem = order[starts[c] : ends[c]]
-            d2 = torch.addmm(yy[mem][None, :], q[xi], Pt[mem].T, alpha=-2.0) + xb[xi, None]
-            dmin, am = d2.min(dim=1)
-            better = dmin < bd[xi]
-            bd[xi] = torch.where(better, dmin, bd[xi])
-            bi[xi] = torch.where(better, mem[am], bi[xi])
+            ym, Pm = yy[mem][None, :], Pt[mem].T
+            # [queries, members] distances (and one temporary) within the budget: a
+            # cluster may hold far more than its m / C share of the targets
+            step = _rows_within(2 * mem.numel() * Q.element_size(), xi.numel(), memory_bytes)
+            for s0 in range(0, xi.numel(), step):
+                x = xi[s0 : s0 + step]
+                d2 = torch.addmm(ym, q[x], Pm, alpha=-2.0) + xb[x, None]
+                dmin, am = d2.min(dim=1)
+                better = dmin < bd[x]
+                bd[x] = torch.where(better, dmin, bd[x])
+                bi[x] = torch.where(better, mem[am], bi[x])
         best_d[r0 : r0 + block] = bd.clamp_min(0)
         best_i[r0 : r0 + block] = bi
     return best_d, best_i
