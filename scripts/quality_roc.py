@@ -30,15 +30,16 @@ def load(paths: list[str]) -> list[dict]:
     return recs
 
 
-def roc(scores_pos: np.ndarray, scores_neg: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """ROC of 'right' (positive, high score) vs 'wrong' maps: (false-alarm, hit) rates, AUC
-    (the probability that a right map scores above a wrong one, ties counted half)."""
-    thr = np.unique(np.concatenate([scores_pos, scores_neg, [-np.inf, np.inf]]))[::-1]
-    tpr = np.array([(scores_pos >= t).mean() for t in thr])
-    fpr = np.array([(scores_neg >= t).mean() for t in thr])
-    gt = (scores_pos[:, None] > scores_neg[None, :]).mean()
-    eq = (scores_pos[:, None] == scores_neg[None, :]).mean()
-    return fpr, tpr, float(gt + 0.5 * eq)
+def roc(q_wrong: np.ndarray, q_right: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """ROC of flagging a map when its quality is below a threshold: (false-alarm rate on
+    right maps, detection rate on wrong maps) over all thresholds, and the AUC (the
+    probability that a wrong map scores below a right one, ties counted half)."""
+    thr = np.unique(np.concatenate([q_wrong, q_right, [-np.inf, np.inf]]))
+    hit = np.array([(q_wrong < t).mean() for t in thr] + [1.0])
+    fa = np.array([(q_right < t).mean() for t in thr] + [1.0])
+    auc = (q_wrong[:, None] < q_right[None, :]).mean() \
+        + 0.5 * (q_wrong[:, None] == q_right[None, :]).mean()
+    return fa, hit, float(auc)
 
 
 def main() -> None:
@@ -58,7 +59,7 @@ def main() -> None:
         print(f"  {run}: {sel.sum()} maps, {(right & sel).sum()} right, {(wrong & sel).sum()} "
               f"wrong, suspect {(sus & sel).sum()}")
     if wrong.any() and right.any():
-        fpr, tpr, auc = roc(q[right], q[wrong])
+        fpr, tpr, auc = roc(q[wrong], q[right])
         print(f"ROC AUC (right vs wrong by quality): {auc:.3f}")
         print(f"suspect flag: {sus[wrong].mean() * 100:.1f} % of wrong maps flagged, "
               f"{sus[right].mean() * 100:.1f} % of right maps flagged (false alarms)")
@@ -71,7 +72,7 @@ def main() -> None:
             fig, ax = plt.subplots(figsize=(4.5, 4.5))
             ax.plot(fpr, tpr, lw=2, label=f"quality (AUC {auc:.3f})")
             ax.plot([0, 1], [0, 1], ":", color="grey")
-            ax.scatter([sus[right].mean()], [1 - sus[wrong].mean()], color="red", zorder=3,
+            ax.scatter([sus[right].mean()], [sus[wrong].mean()], color="red", zorder=3,
                        label="suspect flag (quality < 0.25)")
             ax.set_xlabel("right maps called wrong (false alarms)")
             ax.set_ylabel("wrong maps detected")
