@@ -402,6 +402,26 @@ def _to_np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
+def _barycentric_errors(geo: _TargetGeodesics, pred: np.ndarray, pair: Any,
+                        src_rows: np.ndarray) -> list[np.ndarray]:
+    """Errors against barycentric ground truth (SHREC'16 partial): for a true point ``g =
+    sum_j w_j c_j`` on a triangle ``(c_1, c_2, c_3)`` of the target,
+    ``eps(x) = sum_j w_j d_N(c_j, T(x)) / sqrt(area(N))`` — the geodesic distance field of the
+    predicted vertex ``T(x)`` interpolated linearly at ``g`` (fields from the corners, as every
+    other error here: the ground truth is the source side). Exact at the corners, an upper
+    bound of the distance to ``g`` by at most the triangle's size elsewhere. Returns the direct
+    errors, then the symmetric ones when ``pair.gt_sym_bary`` exists."""
+    out = []
+    for b in (pair.gt_bary, pair.gt_sym_bary):
+        if b is None:
+            continue
+        corners = _to_np(b.corners)[src_rows]
+        w = _to_np(b.weights)[src_rows]
+        parts = geo.errors(pred, [corners[:, j] for j in range(3)])
+        out.append(sum(w[:, j] * parts[j] for j in range(3)))
+    return out
+
+
 def _summary(err: np.ndarray) -> dict[str, float]:
     from .evaluate import summarize
 
@@ -495,7 +515,10 @@ tosca_remeshed_5k_symmetry`).
         gsym = None if gsym is None else gsym[rows]
     pred = fmap[gs]
     geo = _geodesics(pair.target)
-    errs = geo.errors(pred, [gt] if gsym is None else [gt, gsym])
+    if getattr(pair, "gt_bary", None) is not None:
+        errs = _barycentric_errors(geo, pred, pair, gs)
+    else:
+        errs = geo.errors(pred, [gt] if gsym is None else [gt, gsym])
     direct = errs[0]
     flip_err, choice = None, None
     if gsym is not None:

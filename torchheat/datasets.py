@@ -58,6 +58,8 @@ from .mesh import Mesh, load_mesh
 
 __all__ = [
     "CACHE_VERSION",
+    "Barycentric",
+    "BarycentricGT",
     "Pair",
     "PairCollection",
     "Preprocess",
@@ -75,6 +77,7 @@ __all__ = [
     "landmarks",
     "pairs_from_list",
     "scape",
+    "shrec16_partial",
     "tosca_hires",
     "tosca_remeshed_5k",
     "tosca_remeshed_5k_symmetry",
@@ -540,6 +543,40 @@ class Pair:
     gt_sym_tgt: torch.Tensor | None
     name: str
     cls: str
+    gt_bary: Barycentric | None = None
+    gt_sym_bary: Barycentric | None = None
+
+
+@dataclass(frozen=True)
+class Barycentric:
+    """Points on a mesh's triangles, as three corner vertices and barycentric weights.
+
+    Attributes
+    ----------
+    corners : torch.LongTensor, shape (m, 3)
+        0-based vertex indices of the triangle of each point, in the order the face lists them.
+    weights : torch.DoubleTensor, shape (m, 3)
+        Non-negative barycentric weights summing to 1: point ``i`` is
+        ``sum_j weights[i, j] * V[corners[i, j]]``.
+
+    Examples
+    --------
+    >>> b = Barycentric(torch.tensor([[0, 1, 2]]), torch.tensor([[0.2, 0.7, 0.1]],
+    ...                 dtype=torch.float64))
+    >>> b.nearest_corner().tolist()  # the corner of largest weight
+    [1]
+    """
+
+    corners: torch.Tensor
+    weights: torch.Tensor
+
+    def nearest_corner(self) -> torch.Tensor:
+        """The corner of largest weight of every point (the field's ``.vts`` convention)."""
+        j = torch.argmax(self.weights, dim=1, keepdim=True)
+        return torch.gather(self.corners, 1, j).squeeze(1)
+
+    def __len__(self) -> int:
+        return int(self.corners.shape[0])
 
 
 GTResult = tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]
@@ -639,6 +676,70 @@ class VtsSymmetryGT:
         )
 
 
+def read_barycentric(path: PathLike, n_faces: int, faces: np.ndarray) -> Barycentric:
+    """Read a SHREC'16 ``.baryc_gt`` file: one line per point, ``tri w1 w2 w3`` with a
+    **1-based** triangle index into ``faces`` (``n_faces`` rows) and weights on its corners.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        Missing file; wrong column count, triangle index out of ``[1, n_faces]``, negative
+        weights or weights not summing to 1 (within 1e-3), non-finite values — naming the file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"ground-truth file not found: {p}")
+    a = np.loadtxt(p, dtype=np.float64, ndmin=2)
+    if a.shape[1] != 4:
+        raise ValueError(f"{p}: expected 4 columns (tri w1 w2 w3), got {a.shape[1]}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{p}: non-finite values")
+    tri = a[:, 0].round().astype(np.int64)
+    if tri.min() < 1 or tri.max() > n_faces:
+        raise ValueError(f"{p}: triangle indices in [{tri.min()}, {tri.max()}], outside "
+                         f"[1, {n_faces}] (1-based) of the full shape")
+    w = a[:, 1:]
+    if (w < -1e-6).any() or np.abs(w.sum(1) - 1).max() > 1e-3:
+        raise ValueError(f"{p}: barycentric weights must be >= 0 and sum to 1")
+    w = np.clip(w, 0.0, None)
+    w /= w.sum(1, keepdims=True)
+    return Barycentric(torch.from_numpy(np.ascontiguousarray(faces[tri - 1], dtype=np.int64)),
+                       torch.from_numpy(w))
+
+
+@dataclass(frozen=True)
+class BarycentricGT:
+    """SHREC'16 partial ground truth: vertex ``i`` of the partial source lies at a barycentric
+    point of the full target (``<source>.baryc_gt``, and ``<source>.baryc_gt_sym`` for the
+    left/right symmetric correspondence).
+
+    Returns ``(gt_src, gt_tgt, gt_sym_tgt, gt_bary, gt_sym_bary)``: every source vertex, the
+    nearest corners (largest weight) of the direct and symmetric points, and the
+    :class:`Barycentric` points themselves.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+        Folder of the partial shapes and their ``.baryc_gt`` files.
+    """
+
+    folder: Path
+
+    def __call__(self, source: Shape, target: Shape) -> tuple:
+        _, F = target.mesh.numpy()
+        d = Path(self.folder)
+        b = read_barycentric(d / f"{source.name}.baryc_gt", len(F), F)
+        sym_path = d / f"{source.name}.baryc_gt_sym"
+        bs = read_barycentric(sym_path, len(F), F) if sym_path.is_file() else None
+        n = source.n_vertices
+        for name, x in (("baryc_gt", b), ("baryc_gt_sym", bs)):
+            if x is not None and len(x) != n:
+                raise ValueError(f"{source.name}.{name} has {len(x)} rows but {source.name} "
+                                 f"has {n} vertices")
+        return (torch.arange(n, dtype=torch.int64), b.nearest_corner(),
+                None if bs is None else bs.nearest_corner(), b, bs)
+
+
 GroundTruth = Callable[[Shape, Shape], GTResult]
 
 
@@ -652,7 +753,9 @@ class PairCollection(Dataset):
     pairs : sequence of (int or str, int or str)
         (source, target) by index or name in ``shapes``.
     gt : callable, "identity" or None
-        ``gt(source, target) -> (gt_src, gt_tgt, gt_sym_tgt)``; must be picklable for
+        ``gt(source, target) -> (gt_src, gt_tgt, gt_sym_tgt)``, optionally followed by the
+        barycentric ground truth ``(gt_bary, gt_sym_bary)`` (:class:`Barycentric`, with
+        ``gt_tgt`` / ``gt_sym_tgt`` their nearest corners); must be picklable for
         multi-worker loading (:class:`IdentityGT`, :class:`VtsGT`, :class:`VtsSymmetryGT` or a
         module-level function). ``"identity"`` = :class:`IdentityGT`; ``None`` = no ground
         truth (the three fields are ``None``).
@@ -697,12 +800,15 @@ class PairCollection(Dataset):
         a, b = self.pairs[i]
         src = self.shapes[a]
         tgt = src if b == a else self.shapes[b]
+        bary = (None, None)
         if self.gt is None:
             gs, gtg, gsym = None, None, None
         else:
-            gs, gtg, gsym = self.gt(src, tgt)
+            gs, gtg, gsym, *extra = self.gt(src, tgt)
+            if extra:  # barycentric ground truth (direct, symmetric)
+                bary = (extra[0], extra[1] if len(extra) > 1 else None)
         cls = src.cls if src.cls == tgt.cls else f"{src.cls}-{tgt.cls}"
-        return Pair(src, tgt, gs, gtg, gsym, f"{src.name}-{tgt.name}", cls)
+        return Pair(src, tgt, gs, gtg, gsym, f"{src.name}-{tgt.name}", cls, *bary)
 
 
 def pairs_from_list(
@@ -974,6 +1080,65 @@ def tosca_hires(
     shapes = ShapeCollection(files, **_shape_kw(kw))
     plist = _within_class_pairs(shapes, pairs) if isinstance(pairs, str) else pairs
     return PairCollection(shapes, plist, gt="identity")
+
+
+SHREC16_KINDS = ("cuts", "holes")
+
+
+def shrec16_partial(
+    root: PathLike | None = None,
+    kind: str = "cuts",
+    classes: Sequence[str] | None = None,
+    **kw: Any,
+) -> PairCollection:
+    """SHREC'16 Partial Matching of Deformable Shapes, training set (Cosmo et al. 2016).
+
+    Every partial shape ``<kind>_<class>_shape_<i>`` (source) is paired with its class's full
+    shape ``null/<class>.off`` (target): the benchmark's direction, partial -> full. Ground truth
+    (:class:`BarycentricGT`): a barycentric point of the full shape for every partial vertex,
+    direct and left/right symmetric; ``gt_tgt`` / ``gt_sym_tgt`` hold the corners of largest
+    weight, ``gt_bary`` / ``gt_sym_bary`` the points (the batch evaluation uses the points, see
+    :func:`torchheat.batch.evaluate_pair`).
+
+    Parameters
+    ----------
+    root : path-like, optional
+        Data folder (see :func:`data_root`) or the ``shrec16_partial`` folder itself.
+    kind : {"cuts", "holes"}
+        Partiality type: shapes cut by planes (90), or with many holes (60).
+    classes : sequence of str, optional
+        Keep only these classes (cat, centaur, david, dog, horse, michael).
+    **kw
+        ``preprocess``, ``cache_dir``.
+
+    Examples
+    --------
+    >>> pc = shrec16_partial(kind="holes", classes=["dog"])  # doctest: +SKIP
+    >>> len(pc), pc.names[0]  # doctest: +SKIP
+    (10, 'holes_dog_shape_1-dog')
+    """
+    if kind not in SHREC16_KINDS:
+        raise ValueError(f"unknown kind {kind!r}; use one of {SHREC16_KINDS}")
+    d = _dataset_dir(root, "shrec16_partial", "null")
+    parts = _sorted_files(d / kind, f"{kind}_*_shape_*.off")
+    cls_of = {p: p.stem[len(kind) + 1:].rsplit("_shape_", 1)[0] for p in parts}
+    if classes is not None:
+        keep = set(classes)
+        unknown = keep - set(cls_of.values())
+        if unknown:
+            raise ValueError(f"unknown SHREC'16 {kind} classes {sorted(unknown)}")
+        parts = [p for p in parts if cls_of[p] in keep]
+    if not parts:
+        raise FileNotFoundError(f"no {kind}_*_shape_*.off files in {d / kind}")
+    fulls = sorted({cls_of[p] for p in parts})
+    missing = [c for c in fulls if not (d / "null" / f"{c}.off").is_file()]
+    if missing:
+        raise FileNotFoundError(f"full shapes missing in {d / 'null'}: {missing}")
+    files = [d / "null" / f"{c}.off" for c in fulls] + parts
+    shapes = ShapeCollection(files, classes=fulls + [cls_of[p] for p in parts],
+                             **_shape_kw(kw))
+    pairs = [(p.stem, cls_of[p]) for p in parts]
+    return PairCollection(shapes, pairs, gt=BarycentricGT(d / kind))
 
 
 def kids(root: PathLike | None = None, **kw: Any) -> PairCollection:

@@ -30,6 +30,15 @@ from .landmarks import (
     landmark_scores,
 )
 from .orientation import _orientation, _triangles
+from .partial import (
+    PARTIAL_MARGIN,
+    _interior_view,
+    _setup,
+    dense_partial_map,
+    grow_hypothesis,
+    partial_times,
+    partial_zoomout,
+)
 from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
 from .quality import MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
@@ -65,6 +74,7 @@ class _Options:
     zoomout_samples: int = 500
     zoomout_k: int | None = None
     zoomout_hypotheses: int = 4
+    partial_ratio: float | None = None  # area(source) / area(target) of a partial match
 
 
 def match(
@@ -99,6 +109,8 @@ def match(
     zoomout_samples: int = 500,
     zoomout_k: int | None = None,
     zoomout_hypotheses: int = 4,
+    partial: bool = False,
+    partial_margin: float = PARTIAL_MARGIN,
 ) -> Correspondence:
     """Dense correspondence between two near-isometric shapes from one point.
 
@@ -200,6 +212,15 @@ def match(
         heat-kernel maps of correspondence augmentation, as before (``--no-zoomout``).
     zoomout_samples, zoomout_k, zoomout_hypotheses : int
         ZoomOut settings (see ``zoomout``).
+    partial : bool
+        The source is a piece of the target (a partial or incomplete scan of it, in the same
+        units): its time samples are scaled to the target's (one scale for both), landmarks and
+        samples are drawn at least ``partial_margin`` from its boundary, and ZoomOut uses
+        rectangular functional maps (see :mod:`torchheat.matching.partial`). Every source
+        vertex gets a target vertex. The target must be the full shape.
+    partial_margin : float
+        (``partial=True``) Distance from the boundary, in units of ``sqrt(area(target))``,
+        inside which no landmark or sample is taken.
 
     Returns
     -------
@@ -238,8 +259,19 @@ def match(
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
-        if not (tgt.hk.times.shape == src.hk.times.shape
-                and torch.equal(tgt.hk.times, src.hk.times)):
+        part = None
+        if partial:
+            if tgt is src:
+                raise ValueError("partial=True needs two shapes: the piece and the whole")
+            part = _setup(src, tgt, partial_margin)
+            # one scale: the unit-area piece at t / r has the descriptors of the piece at the
+            # whole's scale at t (t k_t is scale-invariant), see matching.partial
+            t_whole = partial_times(src, part)
+            src = _interior_view(src, part)
+            src.hk.set_times(t_whole / part.ratio)
+            tgt.hk.set_times(t_whole)
+        elif not (tgt.hk.times.shape == src.hk.times.shape
+                  and torch.equal(tgt.hk.times, src.hk.times)):
             tgt.hk.set_times(src.hk.times)  # descriptors must share the time samples
         timings["prepare"] = time.perf_counter() - t_start
         if (background and method == "refine" and mirror_hypothesis and tgt is not src
@@ -289,7 +321,8 @@ def match(
                 refine_keep=refine_keep, orientation_samples=orientation_samples,
                 num_threads=num_threads, final_map=final_map, use_hks=use_hks, engine=engine,
                 zoomout=zoomout, zoomout_samples=zoomout_samples, zoomout_k=zoomout_k,
-                zoomout_hypotheses=zoomout_hypotheses)
+                zoomout_hypotheses=zoomout_hypotheses,
+                partial_ratio=None if part is None else part.ratio)
             out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
                           timings)
             direct, sym, orient = out["direct"], out["sym"], out["orient"]
@@ -304,7 +337,8 @@ def match(
     o_dir = direct.get("zo_orientation") if method == "refine" else None
 
     def quality(corr: Correspondence) -> MapQuality:
-        return map_quality(src, tgt, corr.map, o_dir)
+        return map_quality(src, tgt, corr.map, o_dir,
+                           ratio=None if part is None else part.ratio)
 
     return Correspondence(
         **_numbering(src, tgt),
@@ -377,13 +411,18 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                                                        opt.n_candidates))
                     for lm in _expand(src, tgt, pe, q, pe2 if i < opt.expand_top else None,
                                       opt.use_hks, 0.05 * diam_t)]
-    refiner = _Refiner(src, tgt, samples, opt.refine_log_floor)
+    refiner = _Refiner(src, tgt, samples, opt.refine_log_floor,
+                       centre=opt.partial_ratio is None)
     # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
     # energy go on: a hypothesis that starts far behind does not converge (measured:
     # the energies of converged and failed hypotheses differ 5-50x)
     stage = []
     for lms0 in hyp:
         g0, _ = _sample_map(src, tgt, lms0, samples, opt.use_hks, opt.engine)
+        if opt.partial_ratio is not None:  # right near the landmark only: grow from there
+            g0 = grow_hypothesis(src, tgt, int(lms0[0][0]), samples, g0,
+                                 lambda lm: _Refiner(src, tgt, lm, opt.refine_log_floor,
+                                                     centre=False))
         if opt.refine_iterations > 1:
             d2, g0 = refiner.map(g0, samples)
             e1 = float(d2.double().mean())
@@ -472,7 +511,8 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         if not opt.final_map:
             r["map"] = None
         elif "zo" in r:
-            r["map"] = _dense_spectral(src, tgt, r["zo"].C, opt.num_threads, timings)
+            r["map"] = _dense_spectral(src, tgt, r["zo"].C, opt.num_threads, timings,
+                                       partial=opt.partial_ratio is not None)
         else:
             r["map"] = _dense_final(refiner, r["g"], opt.num_threads, timings)
         r["landmarks"] = list(r["lms0"]) + [
@@ -518,6 +558,10 @@ def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tens
     k_end = min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or phi_s.shape[1])
     rows = _fps(src, opt.zoomout_samples)
     with threads(opt.num_threads):
+        if opt.partial_ratio is not None:
+            return partial_zoomout(phi_s, phi_t, seed_rows, seed_images, rows,
+                                   opt.partial_ratio, k_start=k_start, k_end=k_end,
+                                   step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
         return zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
                        k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
 
@@ -550,8 +594,13 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     targets = _fps(tgt, _ZO_TARGETS)
     with threads(opt.num_threads):
         for r in cands:
-            zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
-                         k_end=k_sel, step=_ZO_STEP, targets=targets)
+            if opt.partial_ratio is not None:
+                zo = partial_zoomout(phi_s, phi_t, samples, r["g"], rows, opt.partial_ratio,
+                                     k_start=_ZO_START_K, k_end=k_sel, step=_ZO_STEP,
+                                     targets=targets)
+            else:
+                zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
+                             k_end=k_sel, step=_ZO_STEP, targets=targets)
             r["zo"] = zo
             r["zo_orientation"] = _orientation(
                 src, tgt, tri, lambda i, f=zo.images: f[pos[i]].numpy())
@@ -574,12 +623,13 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
 
 def _dense_spectral(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
-                    num_threads: int | None, timings: dict) -> Callable[[], torch.Tensor]:
+                    num_threads: int | None, timings: dict, partial: bool = False
+                    ) -> Callable[[], torch.Tensor]:
     """The dense map of a functional map, deferred (as :func:`_dense_final`)."""
 
     def compute() -> torch.Tensor:
         t0 = time.perf_counter()
-        out = dense_spectral_map(src, tgt, C, num_threads)
+        out = (dense_partial_map if partial else dense_spectral_map)(src, tgt, C, num_threads)
         timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
         return out
 

@@ -30,12 +30,16 @@ import numpy as np
 import torch
 
 from .orientation import orientation_score
+from .partial import partial_functional_map
 from .prepared import PreparedShape, _fps
 from .zoomout import functional_map
 
 __all__ = ["MapQuality", "map_quality"]
 
 QUALITY_K = 30  # eigenfunctions of the functional map whose orthogonality is read
+# A piece of area r has about r k eigenvalues below the whole's k-th (Weyl's law); its modes
+# are read a margin below that, where the whole's first k functions still span them.
+PARTIAL_MODES = 0.8
 DEFECT_SCALE = 0.35  # defect at which the isometry factor is 1/e
 SUSPECT_BELOW = 0.25  # quality under which a map is reported suspect
 
@@ -68,7 +72,7 @@ class MapQuality:
 
 def map_quality(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
                 orientation: float | None = None, samples: int = 1000,
-                expect: int = 1) -> MapQuality:
+                expect: int = 1, ratio: float | None = None) -> MapQuality:
     """Quality of a dense map from the map alone (no ground truth).
 
     Parameters
@@ -83,6 +87,13 @@ def map_quality(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
     expect : {1, -1}
         The orientation a right map has: +1 for a direct map, -1 for an intrinsic symmetry
         (:func:`~torchheat.matching.symmetry`).
+    ratio : float, optional
+        For a partial source (``match(..., partial=True)``): its area over the target's. The
+        functional map is then rectangular, ``k_s = floor(0.8 ratio k)`` modes of the piece
+        against ``k`` of the whole, pulling the whole's functions back; a right map gives
+        it orthogonal rows, and the defect is ``|r C C^T - I|_F / sqrt(k_s)`` (``r C C^T``:
+        the piece's basis is orthonormal at unit area, ``1 / sqrt(r)`` times its basis at the
+        whole's scale).
 
     Returns
     -------
@@ -103,8 +114,17 @@ def map_quality(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
     fmap = torch.as_tensor(fmap, dtype=torch.int64)
     k = int(min(QUALITY_K, src.hk.eigenvectors.shape[1], tgt.hk.eigenvectors.shape[1]))
     rows = _fps(src, min(samples, src.n))
-    C = functional_map(src.hk.eigenvectors, tgt.hk.eigenvectors, rows, fmap[rows], k)
-    defect = float(torch.linalg.norm(C.T @ C - torch.eye(k, dtype=C.dtype)) / math.sqrt(k))
+    if ratio is None:
+        C = functional_map(src.hk.eigenvectors, tgt.hk.eigenvectors, rows, fmap[rows], k)
+        defect = float(torch.linalg.norm(C.T @ C - torch.eye(k, dtype=C.dtype)) / math.sqrt(k))
+    else:
+        k_s = int(max(1, min(src.hk.eigenvectors.shape[1], math.floor(PARTIAL_MODES * ratio * k))))
+        C = partial_functional_map(src.hk.eigenvectors, tgt.hk.eigenvectors, rows, fmap[rows],
+                                   k_s, k)
+        # the piece's basis is orthonormal at unit area, i.e. sqrt(1/r) times its basis at
+        # the whole's scale: C C^T = I / r for a right map
+        defect = float(torch.linalg.norm(ratio * (C @ C.T) - torch.eye(k_s, dtype=C.dtype))
+                       / math.sqrt(k_s))
     o = orientation_score(src, tgt, fmap) if orientation is None else float(orientation)
     iso = math.exp(-((defect / DEFECT_SCALE) ** 2))
     q = iso * (1.0 + expect * float(np.clip(o, -1.0, 1.0))) / 2.0 if not math.isnan(o) else iso

@@ -47,7 +47,7 @@ _PRUNE_ROWS = 2048
 
 
 def _refine_factors(shape: PreparedShape, landmarks, dtype: torch.dtype,
-                    log_floor: float | None = None) -> _Factors:
+                    log_floor: float | None = None, centre: bool = True) -> _Factors:
     """Multi-landmark descriptor of the refinement, ``t_j k_tj(l, x)`` at every other time,
     centred (constant mode removed), in factored spectral form where the eigenbasis serves
     every time (else explicit).
@@ -56,10 +56,13 @@ def _refine_factors(shape: PreparedShape, landmarks, dtype: torch.dtype,
     (explicit): by Varadhan's formula ``-4 t log k_t(s, x) -> d(s, x)^2``, so each
     coordinate behaves like a geodesic distance to a landmark instead of vanishing away
     from it.
+
+    ``centre=False`` keeps the constant mode: a partial shape's constant term is not its
+    whole's (``t / r`` against ``t`` at the whole's scale), the raw ``t k_t`` are the same.
     """
     hk = shape.hk
     if log_floor is None:
-        f = hk.spectral_factors(landmarks, _REFINE_TIMES, dtype=dtype, drop_constant=True,
+        f = hk.spectral_factors(landmarks, _REFINE_TIMES, dtype=dtype, drop_constant=centre,
                                 mode_tol=_MODE_TOL)
         if f is not None:
             return _Factors(f[0], f[1])
@@ -68,7 +71,7 @@ def _refine_factors(shape: PreparedShape, landmarks, dtype: torch.dtype,
     t = tj.repeat(D.shape[1] // tj.numel())  # landmark-major layout: t_j per column
     if log_floor is None:
         # minus the constant mode's term t_j (unit area; the same offset on every shape)
-        return _Factors(D - t)
+        return _Factors(D - t if centre else D)
     return _Factors(torch.log((D / t).clamp_min(log_floor)))  # undo the t-scaling first
 
 
@@ -82,19 +85,21 @@ class _Refiner:
     """
 
     def __init__(self, src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
-                 log_floor: float | None = None) -> None:
+                 log_floor: float | None = None, centre: bool = True) -> None:
         self.src, self.tgt, self.samples, self.log_floor = src, tgt, samples, log_floor
+        self.centre = centre
         self._src: dict[torch.dtype, _Factors] = {}
 
     def source(self, dtype: torch.dtype) -> _Factors:
         if dtype not in self._src:
-            self._src[dtype] = _refine_factors(self.src, self.samples, dtype, self.log_floor)
+            self._src[dtype] = _refine_factors(self.src, self.samples, dtype, self.log_floor,
+                                               self.centre)
         return self._src[dtype]
 
     def map(self, g: torch.Tensor, rows: torch.Tensor | None,
             dtype: torch.dtype = _REFINE_DTYPE) -> tuple[torch.Tensor, torch.Tensor]:
         """Images (and squared descriptor distances) of the source ``rows`` (None: all)."""
-        Ft = _refine_factors(self.tgt, g, dtype, self.log_floor)
+        Ft = _refine_factors(self.tgt, g, dtype, self.log_floor, self.centre)
         Fs = self.source(dtype)
         n_rows = self.src.n if rows is None else rows.numel()
         with threads(self.src.hk.num_threads):

@@ -1,0 +1,237 @@
+"""Partial shapes: a piece matched into its whole (known vertex correspondences after a rigid
+motion and a permutation), the pieces of the method against independent references, the
+SHREC'16 loader and its barycentric evaluation, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import DATA, SHARED, flat_grid, generic_sphere
+from test_matching import moved_copy
+
+from torchheat import Mesh, load_mesh, match, prepare
+from torchheat.cli import main
+from torchheat.matching.partial import (
+    area_ratio,
+    boundary_distance,
+    partial_functional_map,
+    partial_zoomout,
+)
+from torchheat.meshio import MeshError
+
+pytestmark = pytest.mark.filterwarnings("ignore:Sparse")
+
+
+def cut(mesh: Mesh, axis: int, fraction: float, name: str = "piece") -> Mesh:
+    """The faces of ``mesh`` entirely below the ``fraction`` quantile of coordinate ``axis``
+    (largest component; ``vertex_map`` = indices in ``mesh``)."""
+    V, F = mesh.numpy()
+    c = np.quantile(V[:, axis], fraction)
+    return Mesh(V, F[(V[F, axis] <= c).all(axis=1)], name=name, largest_component=True)
+
+
+@pytest.fixture(scope="module")
+def spot_piece():
+    """Two thirds of the cow Spot (cut across its length) and the whole, moved and permuted."""
+    M = load_mesh(DATA / "spot.obj")
+    V, F = M.numpy()
+    W, G, perm = moved_copy(V, F, seed=5)
+    piece = cut(M, 2, 0.66, name="spot-front")
+    truth = perm[piece.vertex_map.numpy()]  # piece vertex -> vertex of the moved whole
+    return piece, Mesh(W, G, name="spot-moved"), truth
+
+
+def test_boundary_distance_of_a_flat_grid_is_the_distance_to_the_rectangle_edge():
+    V, F = flat_grid(21, 16, 1.0, 0.75)  # grid spacing 0.05 in both directions
+    d = boundary_distance(Mesh(V, F))
+    x, y = V[:, 0], V[:, 1]
+    exact = np.minimum.reduce([x, 1.0 - x, y, 0.75 - y])
+    np.testing.assert_allclose(d, exact, atol=1e-9)  # axis-aligned edge paths are exact here
+    assert np.isinf(boundary_distance(load_mesh(DATA / "spot.obj"))).all()  # closed
+
+
+def test_area_ratio_and_swapped_shapes(spot_piece):
+    piece, whole, _ = spot_piece
+    r = area_ratio(piece, whole)
+    assert r == pytest.approx(piece.area() / whole.area())
+    assert 0.4 < r < 0.9
+    with pytest.raises(MeshError, match="source must be the piece"):
+        area_ratio(Mesh(whole.vertices * 2.0, whole.faces, name="big"), piece)
+
+
+def test_piece_descriptors_at_scaled_times_equal_the_whole_scale_ones():
+    """t k_t is scale-invariant: the unit-area piece at t / r equals the piece at the whole's
+    scale at t — checked against a dense expm of the operator at the whole's scale."""
+    import scipy.linalg as sla
+
+    from torchheat import laplacian
+    from torchheat.heat import HeatKernel
+
+    whole = Mesh(*generic_sphere(3), name="sphere")
+    piece = cut(whole, 0, 0.6)
+    r = area_ratio(piece, whole)
+    t = np.array([0.002, 0.01])
+    hk = HeatKernel(piece, times=t / r, k=piece.n_vertices - 1, method="spectral")
+    p = 17
+    got = hk.columns([p]).numpy()  # [1, n, J] unit-area kernel k'(p, x) at t / r
+    lap = laplacian(piece, normalize=False)
+    W = lap.stiffness_scipy.toarray()
+    a = np.asarray(lap.mass_scipy.diagonal()) / whole.area()  # mass at the whole's scale
+    for j, tj in enumerate(t):
+        K = sla.expm(-tj * W / a[:, None]) / a[None, :]  # exp(-tL) A^-1, L = A^-1 W
+        want = tj * K[:, p]
+        np.testing.assert_allclose((t[j] / r) * got[0, :, j], want, rtol=2e-3,
+                                   atol=1e-6 * want.max())
+
+
+def test_partial_zoomout_on_a_piece_recovers_the_vertex_correspondence(spot_piece):
+    piece, whole, truth = spot_piece
+    ps, pt = prepare(piece, k=60), prepare(whole, k=60)
+    r = area_ratio(piece, whole)
+    rows = torch.arange(piece.n_vertices)
+    seed = torch.as_tensor(np.random.default_rng(0).choice(piece.n_vertices, 60, replace=False))
+    res = partial_zoomout(ps.hk.eigenvectors, pt.hk.eigenvectors, seed,
+                          torch.as_tensor(truth)[seed], rows, r, k_start=12, k_end=60, step=8)
+    assert res.C.shape == (math.ceil(r * 60), 60)
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[res.images.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.03) > 0.9
+    # the rectangular least squares is the plain one on random data
+    g = torch.Generator().manual_seed(1)
+    A, B = torch.randn(50, 6, generator=g, dtype=torch.float64), torch.randn(
+        70, 9, generator=g, dtype=torch.float64)
+    idx = torch.randint(0, 70, (50,), generator=g)
+    C = partial_functional_map(A, B, torch.arange(50), idx, 4, 9)
+    np.testing.assert_allclose(C.numpy(), np.linalg.lstsq(A[:, :4].numpy(), B[idx].numpy(),
+                                                           rcond=None)[0], atol=1e-10)
+
+
+def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
+    piece, whole, truth = spot_piece
+    corr = match(piece, whole, partial=True)
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert corr.map.shape == (piece.n_vertices,)
+    assert np.mean(err < 0.05) > 0.9, np.mean(err < 0.05)
+    q = corr.quality
+    assert not q.suspect and q.orientation > 0.5
+    # the piece's own times are the whole's divided by the area ratio (one scale)
+    assert not corr.info["timings"] == {}
+
+
+def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece):
+    piece, whole, _ = spot_piece
+    V, F = whole.numpy()
+    strip = Mesh(V, F, name="whole-as-piece")
+    with pytest.raises(MeshError, match="too little interior"):
+        match(piece, strip, partial=True, partial_margin=5.0)
+    with pytest.raises(MeshError, match="swap the shapes"):
+        match(Mesh(V * 1.5, F, name="bigger"), piece, partial=True)
+
+
+def test_partial_on_a_closed_shape_is_a_full_match(spot_piece):
+    _, whole, _ = spot_piece
+    M = load_mesh(DATA / "spot.obj")
+    V, F = M.numpy()
+    W, G, perm = moved_copy(V, F, seed=9)
+    corr = match(M, Mesh(W, G), partial=True)
+    Wm = W
+    err = np.linalg.norm(Wm[corr.map.numpy()] - Wm[perm], axis=1) / M.bbox_diagonal()
+    assert np.mean(err < 0.05) > 0.9
+
+
+def test_cli_partial(spot_piece, tmp_path, capsys):
+    from test_cli import write_off
+
+    piece, whole, truth = spot_piece
+    a, b = tmp_path / "piece.off", tmp_path / "whole.off"
+    write_off(a, *piece.numpy())
+    write_off(b, *whole.numpy())
+    out = tmp_path / "map.txt"
+    assert main(["match", str(a), str(b), "-o", str(out), "--partial", "--report",
+                 str(tmp_path / "r.json")]) == 0
+    f = np.loadtxt(out, dtype=np.int64)
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[f] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.05) > 0.9
+    assert main(["match", str(a), str(b), "-o", str(out), "--partial-margin", "0.1"]) == 2
+    assert "--partial-margin needs --partial" in capsys.readouterr().err
+    assert main(["match", str(b), str(a), "-o", str(out), "--partial"]) == 2
+    assert "swap the shapes" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# SHREC'16 loader and barycentric evaluation
+# ------------------------------------------------------------------------------------------
+def test_read_barycentric_checks_the_file(tmp_path):
+    from torchheat.datasets import read_barycentric
+
+    F = np.array([[0, 1, 2], [1, 3, 2]])
+    p = tmp_path / "a.baryc_gt"
+    p.write_text("1 0.2 0.3 0.5\n2 0 0 1\n")
+    b = read_barycentric(p, 2, F)
+    assert b.corners.tolist() == [[0, 1, 2], [1, 3, 2]]
+    assert b.nearest_corner().tolist() == [2, 2]
+    p.write_text("0 0.2 0.3 0.5\n")
+    with pytest.raises(ValueError, match="a.baryc_gt: triangle indices"):
+        read_barycentric(p, 2, F)
+    p.write_text("1 0.9 0.3 0.5\n")
+    with pytest.raises(ValueError, match="sum to 1"):
+        read_barycentric(p, 2, F)
+    with pytest.raises(FileNotFoundError):
+        read_barycentric(tmp_path / "missing.baryc_gt", 2, F)
+
+
+def test_barycentric_errors_interpolate_the_distance_field():
+    """The batch evaluation's barycentric error against GeodesicSolver fields directly."""
+    from torchheat.batch import _barycentric_errors, _TargetGeodesics
+    from torchheat.datasets import Barycentric
+    from torchheat.evaluate import GeodesicSolver
+
+    V, F = flat_grid(15, 12)
+    mesh = Mesh(V, F)
+    rng = np.random.default_rng(0)
+    tri = rng.integers(0, len(F), 40)
+    w = rng.dirichlet([1, 1, 1], 40)
+    pred = rng.integers(0, len(V), 40)
+
+    class _P:
+        gt_bary = Barycentric(torch.as_tensor(F[tri]), torch.as_tensor(w))
+        gt_sym_bary = None
+
+    got = _barycentric_errors(_TargetGeodesics(mesh), pred, _P(), np.arange(40))[0]
+    s = GeodesicSolver(mesh)
+    want = np.array([sum(w[i, j] * s.distances([F[tri[i], j]])[0][pred[i]] for j in range(3))
+                     for i in range(40)]) / math.sqrt(s.area)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    # on a flat grid the interpolated field is close to the true distance to the point
+    P = (w[:, :, None] * V[F[tri]]).sum(1)
+    euclid = np.linalg.norm(P - V[pred], axis=1) / math.sqrt(s.area)
+    assert np.all(got >= euclid - 0.02)
+    assert np.median(np.abs(got - euclid)) < 0.03
+
+
+@pytest.mark.skipif(not (SHARED / "shrec16_partial").is_dir(), reason="shared data missing")
+def test_shrec16_partial_loader():
+    from torchheat.datasets import shrec16_partial
+
+    pc = shrec16_partial(kind="holes", classes=["dog"])
+    assert len(pc) == 10 and pc.names[0] == "holes_dog_shape_1-dog"
+    p = pc[0]
+    assert p.target.name == "dog" and p.gt_bary is not None and p.gt_sym_bary is not None
+    n = p.source.n_vertices
+    assert p.gt_src.tolist() == list(range(n)) and p.gt_bary.corners.shape == (n, 3)
+    # the ground truth maps edges of the piece to about the same length on the whole
+    V, F = p.source.mesh.numpy()
+    W, _ = p.target.mesh.numpy()
+    pts = (p.gt_bary.weights.numpy()[:, :, None] * W[p.gt_bary.corners.numpy()]).sum(1)
+    E = p.source.mesh.edges().numpy()
+    ratio = np.linalg.norm(pts[E[:, 0]] - pts[E[:, 1]], axis=1) / np.linalg.norm(
+        V[E[:, 0]] - V[E[:, 1]], axis=1)
+    assert 0.9 < np.median(ratio) < 1.1
+    assert len(shrec16_partial(kind="cuts")) == 90
+    with pytest.raises(ValueError, match="unknown kind"):
+        shrec16_partial(kind="slices")

@@ -1,0 +1,402 @@
+"""Partial shapes: a piece ``M`` of a surface matched into the whole ``N`` (the paper's third
+application, Ovsjanikov et al. 2010, Sec. 5.3 and Figs. 1, 9).
+
+What changes against a full match (see :func:`torchheat.match` with ``partial=True``):
+
+* **One scale.** Both shapes are in the same units; the heat-kernel operators are normalised to
+  unit area per shape, so the piece, whose true area is ``r = area(M) / area(N)`` of the whole,
+  would be blown up. Its time samples are therefore those of the whole divided by ``r``: the
+  t-scaled kernel ``t k_t`` is invariant under a change of scale (``k`` is an inverse area), so
+  ``t' k'_{t'}`` of the unit-area piece at ``t' = t / r`` equals ``t k_t`` of the piece at the
+  whole's scale, and the descriptors of both shapes mean the same thing.
+* **Times from the piece.** The adaptive times come from the piece's own spectrum (in the
+  whole's units): the largest is ``4 ln 10 / lambda_1(M)``, the time at which heat has spread
+  over the piece, smaller for a small piece — heat must not feel the cut.
+* **The boundary, measured.** Every vertex gets its geodesic (edge-graph) distance to the
+  boundary, in units of ``sqrt(area(N))``. Landmarks, the samples of the landmark score, of the
+  refinement and of ZoomOut are taken among the vertices at least ``margin`` from the cut,
+  where the heat kernel of the piece is close to that of the whole (Neumann and Dirichlet
+  conditions both change it only near the boundary). Every vertex still gets an image.
+* **Rectangular functional maps.** A piece's ``j``-th eigenvalue is about that of the whole's
+  ``j / r``-th (Weyl's law), so ZoomOut grows ``ceil(r k)`` modes of the piece against ``k``
+  of the whole (Rodolà et al. 2017, Melzi et al. 2019, Sec. 6). The functional map pulls the
+  whole's functions back onto the piece, ``Phi_M C ~ Phi_N[T]`` (``C`` is ``k_M x k_N``: the
+  restriction of a function of N is always defined on M, the converse is not), and the point
+  map is ``T(x) = argmin_y |Phi_M[x] C - Phi_N[y]|``.
+
+Direction: the partial shape must be the source. A full shape matched *into* a piece
+(``match(full, part)``) is a full match whose map sends the missing region to wherever its
+descriptors are closest — meaningless there; this module is for ``part -> full``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.sparse.csgraph import dijkstra
+
+from ..descriptors import farthest_point_sampling
+from ..heat import threads
+from ..mesh import Mesh, MeshError
+from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
+from .prepared import PreparedShape, _fps
+from .refine import _refine_factors
+from .zoomout import ZoomOutResult, _sizes
+
+__all__ = [
+    "PARTIAL_MARGIN",
+    "area_ratio",
+    "boundary_distance",
+    "partial_functional_map",
+    "partial_zoomout",
+]
+
+#: Default distance from the boundary (in units of sqrt(area of the full shape)) inside which
+#: vertices are not used as landmarks or samples.
+PARTIAL_MARGIN = 0.02
+#: Fewest vertices a partial shape must keep beyond the margin.
+_MIN_INTERIOR = 50
+#: Area ratio above which the "partial" source is taken to be as large as the target.
+_RATIO_MAX = 1.1
+
+
+def area_ratio(part: Mesh, full: Mesh) -> float:
+    """Area of the partial shape over the area of the full one, in the meshes' own units.
+
+    Parameters
+    ----------
+    part, full : Mesh
+        In the same units (the pieces of a benchmark are cut from the full shape).
+
+    Returns
+    -------
+    float
+        ``area(part) / area(full)``; clipped to at most 1.
+
+    Raises
+    ------
+    MeshError
+        The piece is more than 10 % larger than the whole: the shapes are not in the same
+        units, or the arguments are swapped (the partial shape is the source).
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> m = trimesh.creation.icosphere(2)
+    >>> M = Mesh(m.vertices, m.faces)
+    >>> area_ratio(M, M)
+    1.0
+    """
+    r = part.area() / full.area()
+    if not math.isfinite(r) or r <= 0:
+        raise MeshError(f"{part.name or 'source'}: zero or invalid area")
+    if r > _RATIO_MAX:
+        raise MeshError(
+            f"{part.name or 'source'}: partial shape {r:.2f} times the area of "
+            f"{full.name or 'the target'}: with partial=True the source must be the piece and "
+            "the target the whole, in the same units (swap the shapes or rescale one)")
+    return min(r, 1.0)
+
+
+def boundary_distance(mesh: Mesh, scale: float = 1.0) -> np.ndarray:
+    """Geodesic distance of every vertex to the mesh boundary, along edges (Dijkstra).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        n vertices.
+    scale : float
+        Unit of the result: distances are divided by it (e.g. ``sqrt(area)`` of the full
+        shape).
+
+    Returns
+    -------
+    numpy.ndarray, float64, shape (n,)
+        0 on the boundary; ``inf`` everywhere for a closed mesh. Edge paths overestimate the
+        surface distance by a few percent on regular meshes.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> V = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0], [2, 1, 0]])
+    >>> F = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])
+    >>> boundary_distance(Mesh(V, F)).tolist()  # every vertex of a strip is on its boundary
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    """
+    n = mesh.n_vertices
+    bnd = mesh.boundary_vertices().numpy()
+    if not bnd.any():
+        return np.full(n, np.inf)
+    V, _ = mesh.numpy()
+    E = mesh.edges().numpy()
+    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1) / float(scale)
+    G = sp.coo_matrix((w, (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
+    d = dijkstra(G, directed=False, indices=np.flatnonzero(bnd), min_only=True)
+    return np.asarray(d, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class _PartialSetup:
+    """What a partial match knows about its source: the area ratio and the usable vertices."""
+
+    ratio: float
+    interior: np.ndarray  # bool (n,): vertices at least `margin` from the boundary
+    dist: np.ndarray  # (n,) distance to the boundary, units of sqrt(area(N))
+    margin: float
+
+
+def _setup(src: PreparedShape, tgt: PreparedShape, margin: float) -> _PartialSetup:
+    """Area ratio and interior of the source; refuses a piece without enough interior."""
+    r = area_ratio(src.mesh, tgt.mesh)
+    dist = boundary_distance(src.mesh, math.sqrt(tgt.mesh.area()))
+    interior = dist >= margin
+    n_in = int(interior.sum())
+    if n_in < _MIN_INTERIOR:
+        label = src.mesh.name or "source"
+        raise MeshError(
+            f"{label}: only {n_in} vertices lie at least {margin:g} sqrt(area) from the "
+            f"boundary (largest distance {float(np.max(dist)):.3f}), too little interior to "
+            f"match a partial shape (at least {_MIN_INTERIOR}); lower the margin "
+            "(partial_margin=..., --partial-margin) or use a larger piece")
+    return _PartialSetup(r, interior, dist, margin)
+
+
+#: Largest time of a partial match: heat from a point this deep inside (the 90th percentile of
+#: the distances to the boundary) keeps exp(-d^2 / 4t) <= exp(-4) of its mass off the cut...
+_TIME_DEPTH_QUANTILE = 0.9
+_TIME_DEPTH_FACTOR = 16.0
+#: ...but never below this (the whole's units: heat spread over a disc of radius ~0.2
+#: sqrt(area)); below it a one-point map describes only the landmark's neighbourhood, and
+#: small holes, which put every vertex near a boundary, perturb the kernel far less than a
+#: cut at the same distance (measured on SHREC'16 holes with ground-truth landmarks: the
+#: refinement's error is lowest for t_max between 0.003 and 0.03).
+_TIME_FLOOR = 0.01
+
+
+def partial_times(src: PreparedShape, setup: _PartialSetup, n_times: int | None = None
+                  ) -> torch.Tensor:
+    """Time samples of a partial source, in the whole's units (``t``; the unit-area piece
+    uses ``t / r``).
+
+    ``t_max = max(d^2 / 16, 0.01)`` with ``d`` the 90th percentile of the distances to the
+    boundary (heat released that deep reaches the cut only at ``exp(-d^2/4t) = e^-4`` of its
+    peak), capped by the piece's own adaptive largest time; ``t_min`` the piece's adaptive
+    smallest time (the resolution of its eigenbasis), at most ``t_max / 3``. Log-spaced, as many
+    as the source's current times. A closed source keeps its own adaptive times.
+    """
+    own = src.hk.times.double() * setup.ratio
+    J = int(n_times or own.numel())
+    finite = setup.dist[np.isfinite(setup.dist)]
+    t_hi = float(own.max())
+    if finite.size:
+        d = float(np.quantile(finite, _TIME_DEPTH_QUANTILE))
+        t_hi = min(t_hi, max(d * d / _TIME_DEPTH_FACTOR, _TIME_FLOOR))
+    t_lo = min(float(own.min()), t_hi / 3.0)
+    return torch.logspace(math.log10(t_lo), math.log10(t_hi), J, dtype=torch.float64)
+
+
+def _interior_view(src: PreparedShape, setup: _PartialSetup) -> PreparedShape:
+    """A copy of the source whose feature points and farthest-point samples are interior.
+
+    The pipeline draws every landmark and sample from ``shape.features`` and :func:`_fps`;
+    pre-filling the copy's sample cache with an interior farthest-point order makes all of
+    them avoid the cut (the copy shares the heat kernel; the caller's shape is untouched).
+    """
+    view = dataclasses.replace(src, hk=copy.copy(src.hk))  # own times, shared eigenbasis
+    feats = src.features.numpy()
+    keep = feats[setup.interior[feats]]
+    if keep.size == 0:  # no feature point beyond the margin: start from the deepest vertex
+        keep = np.array([int(np.argmax(np.where(np.isfinite(setup.dist), setup.dist, 0.0)))])
+    view.features = torch.as_tensor(keep, dtype=torch.int64)
+    inner = np.flatnonzero(setup.interior)
+    V, _ = src.mesh.numpy()
+    order = farthest_point_sampling(V[inner], min(inner.size, max(2048, 0)))
+    view.__dict__["_fps_cache"] = torch.as_tensor(inner[order.numpy()], dtype=torch.int64)
+    return view
+
+
+#: Landmark counts of the growing rounds of a partial hypothesis (nearest samples to its
+#: source landmark first); the last round uses all samples.
+_GROW_COUNTS = (6, 12, 24)
+#: Target farthest-point samples the growing rounds map to (the later rounds: every vertex).
+_GROW_TARGETS = 2000
+
+
+def _geodesic_order(mesh: Mesh, source: int, vertices: torch.Tensor) -> torch.Tensor:
+    """``vertices`` sorted by edge-path distance from ``source`` (nearest first)."""
+    V, _ = mesh.numpy()
+    E = mesh.edges().numpy()
+    n = mesh.n_vertices
+    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    G = sp.coo_matrix((w, (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
+    d = dijkstra(G, directed=False, indices=int(source))
+    v = vertices.numpy()
+    return torch.as_tensor(v[np.argsort(d[v], kind="stable")], dtype=torch.int64)
+
+
+def grow_hypothesis(src: PreparedShape, tgt: PreparedShape, p: int, samples: torch.Tensor,
+                    images: torch.Tensor, make_refiner) -> torch.Tensor:
+    """Images of ``samples`` grown outwards from the landmark ``p`` of a one-point hypothesis.
+
+    On a piece only small times are usable, so a one-point map is right near ``p`` and
+    arbitrary far from it. The samples nearest to ``p`` (:data:`_GROW_COUNTS`) become landmarks
+    with their current images and map every sample; the next, larger ring does the same with
+    the images just found — the paper's correspondence augmentation, spreading from where the
+    map is known instead of trusting all samples at once.
+
+    ``make_refiner(landmarks)`` returns a :class:`~torchheat.matching.refine._Refiner` of the
+    piece and the whole with those source landmarks.
+    """
+    order = _geodesic_order(src.mesh, p, samples)
+    pos = torch.full((src.n,), -1, dtype=torch.int64)
+    pos[samples] = torch.arange(samples.numel())
+    targets = _fps(tgt, _GROW_TARGETS)
+    g = images.clone()
+    for c in _GROW_COUNTS:
+        if c >= samples.numel():
+            break
+        lm = order[:c]
+        ref = make_refiner(lm)
+        Fs = ref.source(torch.float32)
+        Ft = _refine_factors(tgt, g[pos[lm]], torch.float32, ref.log_floor, ref.centre)
+        Ft = _Factors(Ft.P[targets], Ft.C)
+        with threads(src.hk.num_threads):
+            g = targets[_nn_factors(Fs, samples, Ft)[1]]
+    return g
+
+
+# ------------------------------------------------------------------------------------------
+# rectangular functional maps
+# ------------------------------------------------------------------------------------------
+def _k_source(k: int, ratio: float, limit: int) -> int:
+    return int(max(1, min(limit, math.ceil(ratio * k))))
+
+
+def partial_functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch.Tensor,
+                           images: torch.Tensor, k_s: int, k_t: int) -> torch.Tensor:
+    """The ``k_s x k_t`` functional map pulling the target's functions back onto a piece.
+
+    Least squares ``min_C |Phi_M[rows, :k_s] C - Phi_N[images, :k_t]|_F``.
+
+    Parameters
+    ----------
+    phi_s : torch.Tensor, shape (n, K_s)
+        Eigenbasis of the piece.
+    phi_t : torch.Tensor, shape (m, K_t)
+        Eigenbasis of the whole.
+    rows, images : torch.Tensor, int64, shape (s,)
+        Source samples and their target vertices; ``s >= k_s``.
+    k_s, k_t : int
+
+    Returns
+    -------
+    torch.Tensor, shape (k_s, k_t)
+
+    Examples
+    --------
+    >>> phi = torch.linalg.qr(torch.randn(60, 8, dtype=torch.float64))[0]
+    >>> partial_functional_map(phi, phi, torch.arange(60), torch.arange(60), 4, 8).shape
+    torch.Size([4, 8])
+    """
+    return torch.linalg.lstsq(phi_s[rows, :k_s], phi_t[images, :k_t]).solution
+
+
+def _pull_map(Ps: torch.Tensor, Pt_sub: torch.Tensor, C: torch.Tensor, rows: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``argmin_y |Phi_M[x, :k_s] C - Phi_N[y, :k_t]|`` for the rows (brute force, blocked)."""
+    k_s, k_t = C.shape
+    X = Ps[rows, :k_s] @ C.to(Ps.dtype)
+    Y = Pt_sub[:, :k_t]
+    return _blocked_argmin(X, Y, (X * X).sum(1), (Y * Y).sum(1), 256 * 2**20)
+
+
+def partial_zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
+                    seed_images: torch.Tensor, rows: torch.Tensor, ratio: float, *,
+                    k_start: int = 16, k_end: int = 100, step: int = 8,
+                    targets: torch.Tensor | None = None) -> ZoomOutResult:
+    """ZoomOut of a piece into a whole: ``k`` modes of the whole against ``ceil(ratio k)`` of
+    the piece at every step (see the module docstring).
+
+    Parameters
+    ----------
+    phi_s, phi_t : torch.Tensor, shapes (n, K_s), (m, K_t)
+        Eigenbases of the piece and of the whole (mass-orthonormal, ascending).
+    seed_rows, seed_images : torch.Tensor, int64, shape (s0,)
+        The starting map on a few source samples.
+    rows : torch.Tensor, int64, shape (s,)
+        Source samples the map is refined on.
+    ratio : float
+        ``area(piece) / area(whole)`` in (0, 1].
+    k_start, k_end, step : int
+        Sizes on the whole's side.
+    targets : torch.Tensor, int64, optional
+        Target vertices the samples may map to (default all).
+
+    Returns
+    -------
+    ZoomOutResult
+        ``C`` is ``k_s x k_end``; ``residual`` the mean squared spectral distance of the
+        samples divided by ``k_end``.
+
+    Notes
+    -----
+    Cost as :func:`~torchheat.matching.zoomout.zoomout`: per step a least-squares solve of
+    ``s x k_s`` and a brute-force search of ``s`` queries among the targets in ``k``
+    dimensions.
+
+    Examples
+    --------
+    >>> phi = torch.linalg.qr(torch.randn(300, 30, dtype=torch.float64))[0]
+    >>> perm = torch.randperm(300)
+    >>> r = partial_zoomout(phi[perm], phi, torch.arange(40), perm[:40], torch.arange(300),
+    ...                     1.0, k_start=8, k_end=30, step=4)
+    >>> bool((r.images == perm).all()), tuple(r.C.shape)
+    (True, (30, 30))
+    """
+    k_end = int(min(k_end, phi_t.shape[1]))
+    Ks = min(phi_s.shape[1], rows.numel())
+    k_start = int(max(1, min(k_start, k_end)))
+    Ps, Pt = phi_s.to(torch.float32), phi_t.to(torch.float32)
+    tmap = torch.arange(phi_t.shape[0]) if targets is None else targets
+    Pt_sub = Pt if targets is None else Pt[targets]
+    ks = min(_k_source(k_start, ratio, Ks), seed_rows.numel())
+    C = partial_functional_map(Ps, Pt, seed_rows, seed_images, ks, k_start)
+    d2, j = _pull_map(Ps, Pt_sub, C, rows)
+    images = tmap[j]
+    for k in _sizes(k_start, k_end, step)[1:]:
+        C = partial_functional_map(Ps, Pt, rows, images, _k_source(k, ratio, Ks), k)
+        d2, j = _pull_map(Ps, Pt_sub, C, rows)
+        images = tmap[j]
+    C = partial_functional_map(phi_s, phi_t, rows, images, _k_source(k_end, ratio, Ks), k_end)
+    return ZoomOutResult(rows, images, C, float(d2.double().mean()) / k_end)
+
+
+def dense_partial_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
+                      num_threads: int | None = None) -> torch.Tensor:
+    """Every vertex of the piece mapped by a rectangular functional map (exact pruned search).
+
+    Parameters
+    ----------
+    src, tgt : PreparedShape
+        The piece (n vertices) and the whole (m vertices).
+    C : torch.Tensor, shape (k_s, k_t)
+
+    Returns
+    -------
+    torch.Tensor, int64, shape (n,)
+    """
+    k_s, k_t = C.shape
+    phi_s = src.hk.eigenvectors[:, :k_s].to(torch.float64)
+    phi_t = tgt.hk.eigenvectors[:, :k_t].to(torch.float64)
+    m = tgt.n
+    centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
+    with threads(num_threads):
+        return _nn_factors_pruned(_Factors(phi_s, C.to(torch.float64)), None,
+                                  _Factors(phi_t, torch.eye(k_t, dtype=torch.float64)),
+                                  centres)[1]
