@@ -201,7 +201,8 @@ def partial_times(src: PreparedShape, setup: _PartialSetup, n_times: int | None 
     return torch.logspace(math.log10(t_lo), math.log10(t_hi), J, dtype=torch.float64)
 
 
-def _interior_view(src: PreparedShape, setup: _PartialSetup) -> PreparedShape:
+def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepest"
+                   ) -> PreparedShape:
     """A copy of the source whose feature points and farthest-point samples are interior.
 
     The pipeline draws every landmark and sample from ``shape.features`` and :func:`_fps`;
@@ -211,6 +212,12 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup) -> PreparedShape:
     view = dataclasses.replace(src, hk=copy.copy(src.hk))  # own times, shared eigenbasis
     feats = src.features.numpy()
     keep = feats[setup.interior[feats]]
+    if order == "deepest":
+        # the first landmark's one-point map is the most reliable where the cut is farthest
+        keep = keep[np.argsort(-setup.dist[keep], kind="stable")]
+    elif order != "strongest":
+        raise ValueError(f"unknown partial landmark order {order!r}; use 'deepest' or "
+                         "'strongest'")
     if keep.size == 0:  # no feature point beyond the margin: start from the deepest vertex
         keep = np.array([int(np.argmax(np.where(np.isfinite(setup.dist), setup.dist, 0.0)))])
     view.features = torch.as_tensor(keep, dtype=torch.int64)
@@ -228,24 +235,25 @@ _GROW_COUNTS = (6, 12, 24)
 _GROW_TARGETS = 2000
 
 
-def _geodesic_order(mesh: Mesh, source: int, vertices: torch.Tensor) -> torch.Tensor:
-    """``vertices`` sorted by edge-path distance from ``source`` (nearest first)."""
+def _geodesic_order(mesh: Mesh, sources: list[int], vertices: torch.Tensor) -> torch.Tensor:
+    """``vertices`` sorted by edge-path distance from the nearest of ``sources``."""
     V, _ = mesh.numpy()
     E = mesh.edges().numpy()
     n = mesh.n_vertices
     w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
     G = sp.coo_matrix((w, (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
-    d = dijkstra(G, directed=False, indices=int(source))
+    d = dijkstra(G, directed=False, indices=np.asarray(sources, dtype=np.int64), min_only=True)
     v = vertices.numpy()
     return torch.as_tensor(v[np.argsort(d[v], kind="stable")], dtype=torch.int64)
 
 
-def grow_hypothesis(src: PreparedShape, tgt: PreparedShape, p: int, samples: torch.Tensor,
+def grow_hypothesis(src: PreparedShape, tgt: PreparedShape, p: list[int], samples: torch.Tensor,
                     images: torch.Tensor, make_refiner) -> torch.Tensor:
-    """Images of ``samples`` grown outwards from the landmark ``p`` of a one-point hypothesis.
+    """Images of ``samples`` grown outwards from the landmarks ``p`` of a hypothesis.
 
-    On a piece only small times are usable, so a one-point map is right near ``p`` and
-    arbitrary far from it. The samples nearest to ``p`` (:data:`_GROW_COUNTS`) become landmarks
+    On a piece only small times are usable, so a one-point map is right near its landmarks
+    ``p`` (the first and the one that splits it from its mirror) and arbitrary far from them.
+    The samples nearest to them (:data:`_GROW_COUNTS`) become landmarks
     with their current images and map every sample; the next, larger ring does the same with
     the images just found — the paper's correspondence augmentation, spreading from where the
     map is known instead of trusting all samples at once.

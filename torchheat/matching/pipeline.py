@@ -40,7 +40,7 @@ from .partial import (
     partial_zoomout,
 )
 from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
-from .quality import MapQuality, map_quality
+from .quality import SUSPECT_BELOW, MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
 from .zoomout import ZoomOutResult, dense_spectral_map, zoomout
@@ -111,6 +111,8 @@ def match(
     zoomout_hypotheses: int = 4,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
+    partial_scale: str = "auto",
+    partial_landmarks: str = "deepest",
 ) -> Correspondence:
     """Dense correspondence between two near-isometric shapes from one point.
 
@@ -221,6 +223,19 @@ def match(
     partial_margin : float
         (``partial=True``) Distance from the boundary, in units of ``sqrt(area(target))``,
         inside which no landmark or sample is taken.
+    partial_scale : {"auto", "piece", "unit"}
+        (``partial=True``) ``"piece"``: the piece at the whole's scale, as described above (what
+        suits a piece cut off by planes). ``"unit"``: the piece normalised to unit area on its
+        own and matched as a whole shape (what suits a surface with many small holes: the heat
+        the holes would have held spreads over the rest, so the large times still agree).
+        ``"auto"`` (default): both; the map of higher partial quality (rectangular functional
+        map defect and orientation, no ground truth) is returned, ``info["partial"]`` says
+        which and why; when both read suspect, the piece is matched once more from the
+        strongest feature points (``partial_landmarks="strongest"``).
+    partial_landmarks : {"deepest", "strongest"}
+        (``partial=True``, piece scale) Order of the source's interior feature points, the
+        first of which is the landmark ``p``: farthest from the boundary first (default), or
+        strongest HKS first (as for whole shapes).
 
     Returns
     -------
@@ -247,6 +262,12 @@ def match(
     >>> float((corr.map == torch.arange(M.n_vertices)).float().mean())
     1.0
     """
+    if partial and partial_scale == "auto" and method == "refine":
+        kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
+        return _partial_auto(source, target, kw)
+    if partial_scale not in ("auto", "piece", "unit"):
+        raise ValueError(f"unknown partial_scale {partial_scale!r}; use 'auto', 'piece' or "
+                         "'unit'")
     if method not in ("refine", "paper"):
         raise ValueError(f"unknown method {method!r}; use 'refine' or 'paper'")
     if engine not in ("auto", "cdist", "kdtree"):
@@ -260,6 +281,12 @@ def match(
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
         part = None
+        if partial and partial_scale == "unit":
+            # matched as a whole shape (both unit-area); only the quality reads it as a piece
+            unit_ratio = _setup(src, tgt, partial_margin).ratio
+            partial = False
+        else:
+            unit_ratio = None
         if partial:
             if tgt is src:
                 raise ValueError("partial=True needs two shapes: the piece and the whole")
@@ -267,7 +294,7 @@ def match(
             # one scale: the unit-area piece at t / r has the descriptors of the piece at the
             # whole's scale at t (t k_t is scale-invariant), see matching.partial
             t_whole = partial_times(src, part)
-            src = _interior_view(src, part)
+            src = _interior_view(src, part, partial_landmarks)
             src.hk.set_times(t_whole / part.ratio)
             tgt.hk.set_times(t_whole)
         elif not (tgt.hk.times.shape == src.hk.times.shape
@@ -338,7 +365,7 @@ def match(
 
     def quality(corr: Correspondence) -> MapQuality:
         return map_quality(src, tgt, corr.map, o_dir,
-                           ratio=None if part is None else part.ratio)
+                           ratio=unit_ratio if part is None else part.ratio)
 
     return Correspondence(
         **_numbering(src, tgt),
@@ -354,8 +381,54 @@ def match(
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "hypothesis_images": hyp_images, "refine_samples": samples,
               "sym_orientation": None if sym is None else sym.get("orientation"),
-              "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks"))},
+              "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks")),
+              "partial": None if part is None and unit_ratio is None else {
+                  "ratio": part.ratio if part is not None else unit_ratio,
+                  "scale": "piece" if part is not None else "unit"}},
     )
+
+
+def _role_copy(shape: PreparedShape) -> PreparedShape:
+    """A copy whose heat kernel times can be changed; the eigenbasis, the farthest-point
+    samples and the self-symmetry cache are shared."""
+    view = dataclasses.replace(shape, hk=copy.copy(shape.hk))
+    view.__dict__["_sym_cache"] = shape.__dict__.setdefault("_sym_cache", {})
+    if "_fps_cache" in shape.__dict__:
+        view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
+    return view
+
+
+def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict
+                  ) -> Correspondence:
+    """``partial_scale="auto"``: the piece matched at the whole's scale and as a unit-area
+    shape; the map of higher partial quality wins (see :func:`match`)."""
+    t0 = time.perf_counter()
+    pkw = {"times": "adaptive" if kw["times"] is None else kw["times"],
+           "max_features": kw["max_features"]}
+    with threads(kw["num_threads"]):
+        src = _as_prepared(source, **pkw)
+        tgt = _as_prepared(target, **pkw)
+    t_prep = time.perf_counter() - t0
+    out = []
+    for scale, order in (("piece", kw["partial_landmarks"]), ("unit", None), ("piece", "retry")):
+        if order == "retry":
+            if max(q for q, _, _ in out) >= SUSPECT_BELOW or kw["partial_landmarks"] != "deepest":
+                break
+            order = "strongest"  # both maps suspect: once more from the strongest features
+        corr = match(src, _role_copy(tgt), **{**kw, "partial_scale": scale,
+                                              "partial_landmarks": order or "deepest"})
+        label = scale if order in (None, kw["partial_landmarks"]) else f"{scale}, {order}"
+        out.append((corr.quality.quality if corr.quality is not None else -1.0, label, corr))
+    best = max(out, key=lambda x: x[0])
+    corr = best[2]
+    corr.info["partial"] = {**corr.info["partial"], "chosen_by": "quality",
+                            "quality": {s: q for q, s, _ in out}}
+    tm = corr.info["timings"]
+    tm["prepare"] = tm.get("prepare", 0.0) + t_prep
+    tm["other_scale"] = sum(c.info["timings"].get("total", 0.0) for _, _, c in out
+                            if c is not corr)
+    tm["total"] = time.perf_counter() - t0
+    return corr
 
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
@@ -420,7 +493,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     for lms0 in hyp:
         g0, _ = _sample_map(src, tgt, lms0, samples, opt.use_hks, opt.engine)
         if opt.partial_ratio is not None:  # right near the landmark only: grow from there
-            g0 = grow_hypothesis(src, tgt, int(lms0[0][0]), samples, g0,
+            g0 = grow_hypothesis(src, tgt, [int(lms0[0][0])], samples, g0,
                                  lambda lm: _Refiner(src, tgt, lm, opt.refine_log_floor,
                                                      centre=False))
         if opt.refine_iterations > 1:
