@@ -116,6 +116,7 @@ __all__ = [
 CURVE_THRESHOLDS: tuple[float, ...] = tuple(float(x) for x in np.round(np.linspace(0, 0.25, 51), 6))
 
 _LOADERS = ("tosca_remeshed_5k", "tosca_remeshed_5k_symmetry", "scape", "tosca_hires", "kids",
+            "shrec16_partial",
             "folder")
 _TASKS = ("match", "symmetry")
 _CONFIG_KEYS = {"name", "dataset", "dataset_args", "task", "match", "prepare", "limit",

@@ -76,6 +76,7 @@ __all__ = [
     "kids",
     "landmarks",
     "pairs_from_list",
+    "read_barycentric",
     "scape",
     "shrec16_partial",
     "tosca_hires",

@@ -22,7 +22,9 @@ The package's modules, in the order data flows: :mod:`.nn` (nearest-neighbour en
 :mod:`.prepared` (prepared shapes and their landmark descriptors), :mod:`.landmarks` (landmark
 search, dense maps, seeding), :mod:`.orientation`, :mod:`.refine` (correspondence
 augmentation), :mod:`.result` (:class:`Correspondence`), :mod:`.pipeline` (:func:`match`) and
-:mod:`.symmetry` (:func:`symmetry`). Each imports only the ones before it.
+:mod:`.symmetry` (:func:`symmetry`), with :mod:`.zoomout` (spectral refinement), :mod:`.partial`
+(a piece matched into its whole, ``match(..., partial=True)``) and :mod:`.quality`. Each imports
+only the ones before it.
 """
 
 from __future__ import annotations
