@@ -563,7 +563,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     def logE(r: dict) -> float:
         return math.log(max(r["energy"], 1e-300))
 
-    if opt.zoomout and tgt is not src:
+    if opt.zoomout and tgt is not src and opt.partial_ratio is None:
         direct, sym = _spectral_choice(src, tgt, samples, good, opt, timings)
     else:
         direct = min(good, key=lambda r: logE(r) - w * r["orientation"])
@@ -575,17 +575,29 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         elif opt.orientation and tgt is not src:
             rest = []
         sym = min(rest, key=lambda r: logE(r) + w * r["orientation"]) if rest else None
-        if opt.zoomout and sym is not None:  # a self-map: refine the symmetric one
+        if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
             sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
+        if opt.zoomout and opt.partial_ratio is not None:
+            # a piece: chosen by energy and orientation (a small piece's few modes do not
+            # tell hypotheses apart: measured, the ZoomOut choice lost right maps of pieces
+            # under 30 % of the area), then refined spectrally; the dense map keeps whichever
+            # of the two maps reads the better quality
+            t_zo = time.perf_counter()
+            for r in (direct, sym):
+                if r is not None:
+                    r["zo"] = _zoomout_final(src, tgt, samples, r["g"], opt)
+            timings["zoomout"] = time.perf_counter() - t_zo
     for r in (direct, sym):
         if r is None:
             continue
         # the dense map, computed when first asked for (Correspondence)
         if not opt.final_map:
             r["map"] = None
+        elif "zo" in r and opt.partial_ratio is not None:
+            r["map"] = _dense_partial_guarded(src, tgt, r, refiner, opt,
+                                              expect=1 if r is direct else -1, timings=timings)
         elif "zo" in r:
-            r["map"] = _dense_spectral(src, tgt, r["zo"].C, opt.num_threads, timings,
-                                       partial=opt.partial_ratio is not None)
+            r["map"] = _dense_spectral(src, tgt, r["zo"].C, opt.num_threads, timings)
         else:
             r["map"] = _dense_final(refiner, r["g"], opt.num_threads, timings)
         r["landmarks"] = list(r["lms0"]) + [
@@ -695,14 +707,34 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     return direct, sym
 
 
+def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,
+                           opt: _Options, expect: int, timings: dict
+                           ) -> Callable[[], torch.Tensor]:
+    """A piece's dense map, deferred: the heat-kernel map of the chosen hypothesis or its
+    rectangular ZoomOut, whichever reads the better partial quality (no ground truth)."""
+
+    def compute() -> torch.Tensor:
+        t0 = time.perf_counter()
+        with threads(opt.num_threads):
+            maps = {"heat kernel": refiner.augment(r["g"], None, 1)[0],
+                    "zoomout": dense_partial_map(src, tgt, r["zo"].C, opt.num_threads)}
+        qual = {k: map_quality(src, tgt, m, expect=expect, ratio=opt.partial_ratio).quality
+                for k, m in maps.items()}
+        r["partial_dense"] = max(qual, key=lambda k: qual[k])
+        r["partial_dense_quality"] = qual
+        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
+        return maps[r["partial_dense"]]
+
+    return compute
+
+
 def _dense_spectral(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
-                    num_threads: int | None, timings: dict, partial: bool = False
-                    ) -> Callable[[], torch.Tensor]:
+                    num_threads: int | None, timings: dict) -> Callable[[], torch.Tensor]:
     """The dense map of a functional map, deferred (as :func:`_dense_final`)."""
 
     def compute() -> torch.Tensor:
         t0 = time.perf_counter()
-        out = (dense_partial_map if partial else dense_spectral_map)(src, tgt, C, num_threads)
+        out = dense_spectral_map(src, tgt, C, num_threads)
         timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
         return out
 
