@@ -43,7 +43,7 @@ from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
 from .quality import SUSPECT_BELOW, MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
-from .zoomout import ZoomOutResult, dense_spectral_map, zoomout
+from .zoomout import ZoomOutResult, dense_spectral_map, spectral_map, zoomout
 
 __all__ = ["match"]
 
@@ -73,7 +73,7 @@ class _Options:
     zoomout: bool = True
     zoomout_samples: int = 500
     zoomout_k: int | None = None
-    zoomout_hypotheses: int = 4
+    zoomout_hypotheses: int = 8
     partial_ratio: float | None = None  # area(source) / area(target) of a partial match
 
 
@@ -98,9 +98,9 @@ def match(
     orientation_weight: float = 3.0,
     refine_log_floor: float | None = None,
     expand_top: int = 2,
-    source_landmarks: int = 5,
+    source_landmarks: int | None = None,
     extra_candidates: int = 20,
-    refine_keep: int | None = 8,
+    refine_keep: int | None | str = "auto",
     orientation_samples: int = 128,
     num_threads: int | None = None,
     final_map: bool = True,
@@ -108,7 +108,7 @@ def match(
     zoomout: bool = True,
     zoomout_samples: int = 500,
     zoomout_k: int | None = None,
-    zoomout_hypotheses: int = 4,
+    zoomout_hypotheses: int = 8,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
     partial_scale: str = "auto",
@@ -177,13 +177,16 @@ def match(
         two hypotheses by a second source landmark that separates the direct map from its
         mirror (see ``_twin_landmark``); needed when ``p`` lies on the symmetry plane (the
         tail tip of a cat, measured: its one-point map then mixes left and right).
-    source_landmarks : int
+    source_landmarks : int, optional
         (``method="refine"``, automatic landmark) Number of source landmarks whose
         candidates seed hypotheses: the strongest feature, then features farthest from the
-        ones already used.
-    refine_keep : int or None
+        ones already used. Default: 8 when the hypotheses are chosen by ZoomOut (``zoomout``,
+        two shapes), else 5 (the choice by energy gets worse past 5 seeds; the ZoomOut choice
+        does not: on 41 development pairs, Euclidean fraction under 0.25 sqrt(area) 0.78 ->
+        0.84 with ``refine_keep`` 12 and ``zoomout_hypotheses`` 8, at +15-35 % match time).
+    refine_keep : int, None or "auto"
         Hypotheses carried past the first refinement round (lowest energy first; None:
-        all).
+        all; "auto" (default): 12 when chosen by ZoomOut, else 8).
     extra_candidates : int
         Target features scored for each extra source landmark: those of closest HKS.
     orientation_samples : int
@@ -206,11 +209,14 @@ def match(
         (``method="refine"``, two shapes) Refine spectrally (:func:`~torchheat.matching.
         zoomout.zoomout`, Melzi et al. 2019): the ``zoomout_hypotheses`` best distinct
         refined hypotheses (the mirror partner included) are each upsampled by ZoomOut from 16
-        to 50 eigenmodes on ``zoomout_samples`` farthest-point samples; the direct map is the
-        one minimising ``log(residual) - orientation_weight * orientation`` (orientation read
-        on the ZoomOut map, where it is clear: +-0.7..0.95), the symmetric map the best
-        orientation-reversing one; both are then refined to ``zoomout_k`` modes (default: all
-        eigenpairs of the shapes) and made dense from the functional map. False: the
+        to 100 eigenmodes on ``zoomout_samples`` farthest-point samples; every clean
+        reflection among them (orientation below -0.5) is composed with the target's
+        self-symmetries (up to two, see ``_mirror_partners``) and upsampled too; the direct
+        map is the one minimising ``log(residual) - orientation_weight * min(orientation,
+        0.6)`` (orientation read on the ZoomOut map, where it is clear: +-0.7..0.95), the
+        symmetric map the best orientation-reversing one; both are then refined to
+        ``zoomout_k`` modes (default: all eigenpairs of the shapes) and made dense from the
+        functional map. False: the
         heat-kernel maps of correspondence augmentation, as before (``--no-zoomout``).
     zoomout_samples, zoomout_k, zoomout_hypotheses : int
         ZoomOut settings (see ``zoomout``).
@@ -276,6 +282,12 @@ def match(
         raise ValueError("landmarks must be >= 1")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    # hypotheses chosen by ZoomOut (a piece's are chosen by energy and orientation)
+    spectral = zoomout and target is not source and not (partial and partial_scale == "piece")
+    if source_landmarks is None:
+        source_landmarks = 8 if spectral else 5
+    if refine_keep == "auto":
+        refine_keep = 12 if spectral else 8
     with threads(num_threads), _Background() as bg:
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
@@ -323,6 +335,7 @@ def match(
         hypotheses = []
         hyp_images: list[torch.Tensor] = []
         samples = None
+        zo_diag: list = []
         if method == "paper":
             hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, 2)
                    for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)][:2]
@@ -355,6 +368,7 @@ def match(
             direct, sym, orient = out["direct"], out["sym"], out["orient"]
             hypotheses, hyp_images = out["hypotheses"], out["hyp_images"]
             samples = out["samples"]
+            zo_diag = out["zo_diag"]
     for shape in (src, tgt):  # the memo serves one call; do not hold ~64 MB per shape
         with _DESC_LOCK:
             shape.__dict__.pop("_desc_cache", None)
@@ -380,6 +394,7 @@ def match(
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "hypothesis_images": hyp_images, "refine_samples": samples,
+              "zoomout_candidates": zo_diag,
               "sym_orientation": None if sym is None else sym.get("orientation"),
               "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks")),
               "partial": None if part is None and unit_ratio is None else {
@@ -559,12 +574,13 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     good = [r for r in pool_r if r is best or opt.mirror_energy_ratio is None
             or r["energy"] <= opt.mirror_energy_ratio * ref["energy"]]
     w = opt.orientation_weight if opt.orientation else 0.0
+    zo_diag: list = []
 
     def logE(r: dict) -> float:
         return math.log(max(r["energy"], 1e-300))
 
     if opt.zoomout and tgt is not src and opt.partial_ratio is None:
-        direct, sym = _spectral_choice(src, tgt, samples, good, opt, timings)
+        direct, sym, zo_diag = _spectral_choice(src, tgt, samples, good, opt, timings)
     else:
         direct = min(good, key=lambda r: logE(r) - w * r["orientation"])
         rest = [r for r in good if r is not direct]
@@ -607,13 +623,16 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     orient = direct.get("zo_orientation", direct["orientation"])
     timings["dense_map"] = time.perf_counter() - t0
     return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,
-            "hyp_images": hyp_images, "samples": samples}
+            "hyp_images": hyp_images, "samples": samples, "zo_diag": zo_diag}
 
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
 _ZO_STEP = 8  # modes added per ZoomOut step
 _ZO_TARGETS = 2000  # farthest-point target samples the ZoomOut steps map to (the dense map: all)
 _ZO_SAME = 0.9  # hypotheses whose sample images agree (within 5 % of the diameter) this often
+_ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct maps read
+# +0.6..0.95; above it the residual decides: on 41 development pairs a left/right + front/back
+# swap reading +0.9 beat the right map reading +0.84 at a lower residual)
 _ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
 
 
@@ -677,6 +696,9 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     pos[rows] = torch.arange(rows.numel())
     k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
     targets = _fps(tgt, _ZO_TARGETS)
+    def orient(images: torch.Tensor) -> float:
+        return _orientation(src, tgt, tri, lambda i: images[pos[i]].numpy())
+
     with threads(opt.num_threads):
         for r in cands:
             if opt.partial_ratio is not None:
@@ -687,24 +709,74 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                 zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
                              k_end=k_sel, step=_ZO_STEP, targets=targets)
             r["zo"] = zo
-            r["zo_orientation"] = _orientation(
-                src, tgt, tri, lambda i, f=zo.images: f[pos[i]].numpy())
+            r["zo_orientation"] = orient(zo.images)
+        if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
+            cands += _mirror_partners(src, tgt, rows, pos[samples], cands, opt, k_sel,
+                                      targets, orient)
     w = opt.orientation_weight if opt.orientation else 0.0
 
     def score(r: dict, sign: float) -> float:
-        return math.log(max(r["zo"].residual, 1e-300)) - sign * w * r["zo_orientation"]
+        o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
+        return math.log(max(r["zo"].residual, 1e-300)) - w * o
 
     direct = min(cands, key=lambda r: score(r, 1.0))
     rest = [r for r in cands if r is not direct
             and (not opt.orientation or r["zo_orientation"] < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
+    # diagnostics: (rows, images, residual, orientation, chosen) of every ZoomOut candidate
+    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct)
+            for r in cands]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for r in (direct, sym):
         if r is not None and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9):
             r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
     timings["zoomout"] = time.perf_counter() - t0
-    return direct, sym
+    return direct, sym, diag
+
+
+_MIRROR_BELOW = -0.5  # ZoomOut candidates reading below this are clean reflections
+_MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measured: no gain
+# on 13 weak SCAPE pairs, and a self-match more per source shape)
+
+
+def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                     at_samples: torch.Tensor, cands: list[dict], opt: _Options, k_sel: int,
+                     targets: torch.Tensor, orient: Callable[[torch.Tensor], float]) -> list[dict]:
+    """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
+    ``T`` (``sigma_N``: the target's intrinsic symmetry), refined by ZoomOut from 16 modes.
+
+    The hypotheses of human poses are often a clean mirror map (orientation -0.8..-0.9) and a
+    left/right + front/back swap (a half-turn about the body axis, orientation-preserving),
+    with the direct map missing (measured on the failing SCAPE and TOSCA michael pairs); the
+    mirror map's partner is the direct map. Partners whose sample images agree with an
+    existing candidate's (as in :func:`_distinct_hypotheses`) are dropped. ``at_samples``:
+    positions of the refinement samples in ``rows`` (the partners' ``"g"``).
+    """
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    phi_s, phi_t = _bases(src, tgt)
+    out: list[dict] = []
+    src_syms = _symmetries_at(src, rows, opt.use_hks, opt.engine, opt.n_candidates,
+                              opt.refine_log_floor) if _MIRROR_SOURCE else []
+    for r in [c for c in cands if c["zo_orientation"] < _MIRROR_BELOW]:
+        # sigma_N o T for each target symmetry
+        seeds = _symmetries_at(tgt, r["zo"].images, opt.use_hks, opt.engine,
+                               opt.n_candidates, opt.refine_log_floor)
+        for ss in src_syms:  # T o sigma_M, read from T's functional map
+            j = spectral_map(phi_s, phi_t[targets], r["zo"].C, ss)[1]
+            seeds.append(targets[j])
+        for seed in seeds:
+            zo = zoomout(phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K, k_end=k_sel,
+                         step=_ZO_STEP, targets=targets)
+            im = zo.images.numpy()
+            if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
+                           <= radius) >= _ZO_SAME for o in cands + out):
+                continue
+            out.append({"lms0": [], "g": zo.images[at_samples], "zo": zo,
+                        "energy": float("nan"), "orientation": float("nan"),
+                        "zo_orientation": orient(zo.images)})
+    return out
 
 
 def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,
@@ -777,11 +849,51 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS)
     out = None
+    alts: list[tuple[torch.Tensor, torch.Tensor]] = []
     if corr.symmetric_landmarks is not None and corr.info.get("sym_orientation", 0) < 0:
         lm = corr.symmetric_landmarks[len(corr.info["lms0_sym"]):]
         out = (torch.tensor([a for a, _ in lm]), torch.tensor([b for _, b in lm]))
+        alts = [out]
+        # the next distinct orientation-reversing self-map (lowest energy first): humans
+        # have two, left/right and an approximate front/back reflection, and the self-match
+        # does not always rank the left/right one first (SCAPE mesh003, mesh014)
+        V, _ = shape.mesh.numpy()
+        radius = 0.05 * shape.mesh.bbox_diagonal()
+        S = corr.info["refine_samples"]
+        order = sorted(range(len(corr.info["hypotheses"])),
+                       key=lambda i: corr.info["hypotheses"][i][1])
+        for i in order:
+            _, e, o = corr.info["hypotheses"][i]
+            g = corr.info["hypothesis_images"][i]
+            if not (o < 0) or not torch.equal(S, out[0]):
+                continue
+            if _is_identity({"g": g}, V, radius, S):
+                continue
+            if np.mean(np.linalg.norm(V[g.numpy()] - V[out[1].numpy()], axis=1)
+                       <= radius) >= _ZO_SAME:
+                continue
+            alts.append((S, g))
+            break
     cache[key] = out
+    shape.__dict__.setdefault("_sym_alt_cache", {})[key] = alts
     return out
+
+
+def _self_symmetries(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int,
+                     log_floor: float | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Up to two distinct orientation-reversing self-maps ``(samples, images)``: the
+    self-symmetry of :func:`_self_symmetry` first, then the next distinct one of the
+    self-match's hypotheses (cached with it)."""
+    _self_symmetry(shape, use_hks, engine, n_candidates, log_floor)
+    return shape.__dict__.get("_sym_alt_cache", {}).get(_sym_key(shape, log_floor), [])
+
+
+def _symmetries_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None
+                   ) -> list[torch.Tensor]:
+    """Images of ``vertices`` under each of :func:`_self_symmetries`."""
+    v = torch.as_tensor(vertices)
+    return [_Refiner(shape, shape, S, log_floor).map(G, v)[1]
+            for S, G in _self_symmetries(shape, use_hks, engine, n_candidates, log_floor)]
 
 
 def _symmetry_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None

@@ -1,0 +1,214 @@
+#!/usr/bin/env python
+"""torchheat against pyFM's README pipeline, side by side on the same pairs and metric.
+
+    python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape] [--points 300]
+                                   [--process] [--out out/compare_pyfm.json]
+
+pyFM (``pip install pyfmaps``; an optional dependency of this script only, never imported by
+the package) runs the pipeline of its README (v1.3.1): ``TriMesh.load(path, area_normalize=
+True, center=True)``, ``preprocess(descr_type="WKS", subsample_step=2)``, ``fit(K=30,
+w_descr=1, w_lap=0.1, w_dcomm=1, w_orient=1)`` (the orientation-preserving term), then
+``zoomout_refine(nit=16, step=5)`` (30 -> 110 eigenfunctions) and ``get_p2p``. pyFM's
+``p2p_21`` maps mesh2's vertices to mesh1, so mesh1 is our target and mesh2 our source.
+torchheat runs ``prepare`` + ``match`` with default options. Both in this process, one
+thread (BLAS and torch), back to back per pair.
+
+Metric (the same for both): Princeton error ε(x) = d_N(f(x), f*(x)) / sqrt(area N) on
+``--points`` evenly spaced ground-truth rows per pair (``torchheat.evaluate.geodesic_errors``,
+heat-method geodesics), direct, and flip-aware on TOSCA (the whole map judged against the
+direct or the symmetric ground truth, whichever has the lower mean error).
+
+``--process`` also times each tool as a whole process on the first pair (``torchheat match``
+CLI against a ``python -c`` running pyFM's pipeline), back to back.
+
+Sets: ``tosca12`` = two test pairs per class (the first two of each class in test_pairs.txt:
+16 pairs; the name is that of the issue's 12-pair measurement), ``scape6`` = SCAPE pairs
+(0,1), (4,6), (8,9), (3,13), (5,15), (10,19); ``tosca`` = all 284 test pairs, ``scape`` =
+the 40 pairs of configs/scape.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SCAPE6 = [(0, 1), (4, 6), (8, 9), (3, 13), (5, 15), (10, 19)]
+
+PYFM_SNIPPET = """
+import sys
+from pyFM.mesh import TriMesh
+from pyFM.functional import FunctionalMapping
+import numpy as np
+m1 = TriMesh.load(sys.argv[2], area_normalize=True, center=True)
+m2 = TriMesh.load(sys.argv[1], area_normalize=True, center=True)
+model = FunctionalMapping(m1, m2)
+model.preprocess(descr_type="WKS", subsample_step=2)
+model.fit(K=30, w_descr=1e0, w_lap=1e-1, w_dcomm=1e0, w_orient=1e0)
+fm = model.zoomout_refine(nit=16, step=5)
+np.savetxt(sys.argv[3], model.get_p2p(fm), fmt="%d")
+"""
+
+
+def pyfm_map(source_path: str, target_path: str) -> np.ndarray:
+    """pyFM's README pipeline; returns the target vertex of every source vertex."""
+    from pyFM.functional import FunctionalMapping
+    from pyFM.mesh import TriMesh
+
+    m1 = TriMesh.load(target_path, area_normalize=True, center=True)
+    m2 = TriMesh.load(source_path, area_normalize=True, center=True)
+    model = FunctionalMapping(m1, m2)
+    model.preprocess(descr_type="WKS", subsample_step=2)
+    model.fit(K=30, w_descr=1e0, w_lap=1e-1, w_dcomm=1e0, w_orient=1e0)
+    fm = model.zoomout_refine(nit=16, step=5)
+    return np.asarray(model.get_p2p(fm), dtype=np.int64)
+
+
+def rows(n_gt: int, points: int) -> np.ndarray:
+    """``points`` evenly spaced ground-truth rows (all when fewer)."""
+    return np.unique(np.linspace(0, n_gt - 1, min(points, n_gt)).astype(np.int64))
+
+
+def princeton(target, pred: np.ndarray, gt: np.ndarray, gt_sym: np.ndarray | None,
+              solver=None) -> dict:
+    """Direct and flip-aware Princeton errors of predicted target vertices ``pred`` against
+    ``gt`` (and ``gt_sym``): ``{"direct": errors, "flip": errors or None}``; the flip-aware
+    errors are those of the ground truth with the lower mean error (the whole map)."""
+    from torchheat.evaluate import GeodesicSolver, geodesic_errors
+
+    solver = solver or GeodesicSolver(target)
+    e = geodesic_errors(target, pred, gt, solver=solver)
+    out = {"direct": e, "flip": None}
+    if gt_sym is not None:
+        es = geodesic_errors(target, pred, gt_sym, solver=solver)
+        out["flip"] = e if e.mean() <= es.mean() else es
+    return out
+
+
+def _summary(e: np.ndarray | None) -> dict | None:
+    if e is None:
+        return None
+    return {"mean": float(e.mean()), "under_0.25": float((e < 0.25).mean()),
+            "under_0.05": float((e < 0.05).mean())}
+
+
+def pairs_of(name: str):
+    from torchheat import datasets
+
+    if name == "scape6":
+        return datasets.scape(pairs=SCAPE6)
+    if name == "scape":
+        return datasets.scape()
+    pc = datasets.tosca_remeshed_5k()
+    if name == "tosca":
+        return pc
+    seen: dict[str, int] = {}
+    keep = []
+    for i in range(len(pc)):
+        cls = pc[i].cls
+        if seen.get(cls, 0) < 2:
+            seen[cls] = seen.get(cls, 0) + 1
+            keep.append((pc.shapes.names[pc.pairs[i][0]], pc.shapes.names[pc.pairs[i][1]]))
+    return datasets.tosca_remeshed_5k(pairs=keep)
+
+
+def _path(shape) -> str:
+    return str(shape.path)
+
+
+def process_times(src: str, tgt: str, tmp: Path) -> dict:
+    """Whole-process wall times of both tools on one pair, back to back."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "from torchheat.cli import run; run()", "match",
+                    src, tgt, "-o", str(tmp / "th.txt"), "--threads", "1"],
+                   check=True, env=env, capture_output=True)
+    t1 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", PYFM_SNIPPET, src, tgt, str(tmp / "pyfm.txt")],
+                   check=True, env=env, capture_output=True)
+    t2 = time.perf_counter()
+    return {"torchheat_process_s": t1 - t0, "pyfm_process_s": t2 - t1}
+
+
+def main(argv: list[str]) -> None:
+    import torch
+
+    import torchheat
+    from torchheat.evaluate import GeodesicSolver
+
+    torch.set_num_threads(1)
+    name, points, proc, outf = "tosca12", 300, False, None
+    it = iter(argv)
+    for a in it:
+        if a == "--set":
+            name = next(it)
+        elif a == "--points":
+            points = int(next(it))
+        elif a == "--process":
+            proc = True
+        elif a == "--out":
+            outf = next(it)
+        else:
+            raise SystemExit(__doc__)
+    pc = pairs_of(name)
+    res = []
+    print(f"load average at start: {os.getloadavg()}", flush=True)
+    for i in range(len(pc)):
+        pr = pc[i]
+        S, T = pr.source.mesh, pr.target.mesh
+        gs, gt = pr.gt_src.numpy(), pr.gt_tgt.numpy()
+        sel = rows(len(gs), points)
+        gsym = None if pr.gt_sym_tgt is None else pr.gt_sym_tgt.numpy()[sel]
+        t0 = time.perf_counter()
+        corr = torchheat.match(torchheat.prepare(S), torchheat.prepare(T))
+        f_th = corr.map.numpy()
+        t1 = time.perf_counter()
+        f_pf = pyfm_map(_path(pr.source), _path(pr.target))
+        t2 = time.perf_counter()
+        solver = GeodesicSolver(T)
+        rec = {"name": pr.name, "cls": pr.cls, "points": int(sel.size),
+               "torchheat_s": t1 - t0, "pyfm_s": t2 - t1}
+        for tool, f in (("torchheat", f_th), ("pyfm", f_pf)):
+            e = princeton(T, f[gs[sel]], gt[sel], gsym, solver)
+            rec[tool] = {"direct": _summary(e["direct"]), "flip": _summary(e["flip"])}
+        if proc and i == 0:
+            rec.update(process_times(_path(pr.source), _path(pr.target),
+                                     Path(outf or "out/compare_pyfm.json").parent))
+        res.append(rec)
+        print(f"{pr.name:22s} torchheat {rec['torchheat']['direct']['under_0.25']:.3f} "
+              f"({rec['torchheat']['direct']['mean']:.4f}, {rec['torchheat_s']:.2f} s)  "
+              f"pyFM {rec['pyfm']['direct']['under_0.25']:.3f} "
+              f"({rec['pyfm']['direct']['mean']:.4f}, {rec['pyfm_s']:.2f} s)", flush=True)
+    print(f"load average at end: {os.getloadavg()}")
+    for tool in ("torchheat", "pyfm"):
+        for kind in ("direct", "flip"):
+            vals = [r[tool][kind] for r in res if r[tool][kind] is not None]
+            if vals:
+                print(f"{tool:9s} {kind:6s} n={len(vals)} % < 0.25 "
+                      f"{100 * np.mean([v['under_0.25'] for v in vals]):.1f}  mean "
+                      f"{np.mean([v['mean'] for v in vals]):.4f}  % < 0.05 "
+                      f"{100 * np.mean([v['under_0.05'] for v in vals]):.1f}  min "
+                      f"{100 * min(v['under_0.25'] for v in vals):.1f}")
+        print(f"{tool:9s} time per pair (in process) "
+              f"{np.mean([r[tool + '_s'] for r in res]):.2f} s")
+    if res and "pyfm_process_s" in res[0]:
+        print(f"whole process, first pair: torchheat {res[0]['torchheat_process_s']:.2f} s, "
+              f"pyFM {res[0]['pyfm_process_s']:.2f} s")
+    if outf:
+        Path(outf).parent.mkdir(parents=True, exist_ok=True)
+        Path(outf).write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
