@@ -701,13 +701,8 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
     with threads(opt.num_threads):
         for r in cands:
-            if opt.partial_ratio is not None:
-                zo = partial_zoomout(phi_s, phi_t, samples, r["g"], rows, opt.partial_ratio,
-                                     k_start=_ZO_START_K, k_end=k_sel, step=_ZO_STEP,
-                                     targets=targets)
-            else:
-                zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
-                             k_end=k_sel, step=_ZO_STEP, targets=targets)
+            zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
+                         k_end=k_sel, step=_ZO_STEP, targets=targets)
             r["zo"] = zo
             r["zo_orientation"] = orient(zo.images)
         if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
