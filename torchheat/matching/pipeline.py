@@ -10,6 +10,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,7 +31,7 @@ from .landmarks import (
     landmark_scores,
 )
 from .orientation import _orientation, _triangles
-from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
+from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
 from .quality import MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
@@ -68,8 +69,8 @@ class _Options:
 
 
 def match(
-    source: Mesh | PreparedShape,
-    target: Mesh | PreparedShape,
+    source: Mesh | PreparedShape | CachedShape | Any,
+    target: Mesh | PreparedShape | CachedShape | None = None,
     *,
     landmark: int | tuple[int, int] | None = None,
     landmarks: int = 1,
@@ -104,8 +105,11 @@ def match(
 
     Parameters
     ----------
-    source, target : Mesh or PreparedShape
-        Shapes M (n vertices) and N (m vertices).
+    source, target : Mesh, PreparedShape or torchheat.datasets.Shape
+        Shapes M (n vertices) and N (m vertices). A dataset shape's cached eigenpairs are
+        used (see :func:`prepare`): with a :class:`~torchheat.datasets.Preprocess`, no
+        eigensolve runs. A :class:`torchheat.datasets.Pair` may be passed as ``source`` alone
+        (``match(pair)`` is ``match(pair.source, pair.target)``).
     landmark : int or (int, int), optional
         Source landmark ``p`` (default: the strongest feature point), or a known pair
         ``(p, q)`` which skips the landmark search. Indices of the meshes as given: for a mesh
@@ -225,7 +229,15 @@ def match(
     >>> corr = match(M, M)
     >>> float((corr.map == torch.arange(M.n_vertices)).float().mean())
     1.0
+
+    Pairs of a dataset whose eigenpairs are cached on disk (e.g. in a ``DataLoader`` loop):
+
+    >>> from torchheat.datasets import Preprocess, tosca_remeshed_5k
+    >>> pairs = tosca_remeshed_5k(pairs="test", preprocess=Preprocess())  # doctest: +SKIP
+    >>> corr = match(pairs[0])  # doctest: +SKIP
     """
+    if target is None:
+        source, target = _pair_shapes(source)
     if method not in ("refine", "paper"):
         raise ValueError(f"unknown method {method!r}; use 'refine' or 'paper'")
     if engine not in ("auto", "cdist", "kdtree"):
@@ -322,6 +334,14 @@ def match(
               "sym_orientation": None if sym is None else sym.get("orientation"),
               "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks"))},
     )
+
+
+def _pair_shapes(pair: Any) -> tuple[Any, Any]:
+    """``(pair.source, pair.target)`` of a dataset pair (:class:`torchheat.datasets.Pair`)."""
+    if hasattr(pair, "source") and hasattr(pair, "target"):
+        return pair.source, pair.target
+    raise TypeError(f"match needs a target, or a dataset Pair as its only shape; got one "
+                    f"{type(pair).__name__}")
 
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,

@@ -1,0 +1,243 @@
+"""Executors beyond one process: torchheat's batch work on a Dask distributed cluster.
+
+:class:`DaskExecutor` wraps a :class:`distributed.Client`, either of a :class:`distributed.
+LocalCluster` it starts (``"local:N"``: N worker processes of one thread each, on this
+machine) or of an existing scheduler (``"tcp://host:8786"``, started with Dask's own ``dask
+scheduler`` / ``dask worker`` commands). It is what ``torchheat evaluate CONFIG --dask ...``
+and ``executor: {dask: ...}`` in a config use, and it serves any ``map(fn, iterable)`` user
+such as :meth:`torchheat.datasets.ShapeCollection.fill_cache`.
+
+dask.distributed is an optional dependency (``pip install 'torchheat[dask]'``); it is imported
+when a :class:`DaskExecutor` is made, never by ``import torchheat``. This module imports
+nothing else of torchheat.
+
+What the engine provides and torchheat relies on (see :mod:`torchheat.batch` for the rest):
+
+* a task whose worker process dies (killed, out of memory: the nanny restarts it) is run again
+  on a live worker; a task that kills ``distributed.scheduler.allowed-failures`` (default 3)
+  workers fails with ``KilledWorker`` instead of being retried for ever;
+* results held by a dead worker are recomputed from their tasks (lineage);
+* a dependency's result moves to the worker that runs the dependent task.
+
+Examples
+--------
+>>> with DaskExecutor("local:2") as ex:  # doctest: +SKIP
+...     sorted(ex.map(abs, [-1, 2, -3]))
+[1, 2, 3]
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+__all__ = ["INSTALL_HINT", "DaskExecutor", "ExecutorError", "import_distributed",
+           "parse_dask_address"]
+
+#: What to install for the Dask executor.
+INSTALL_HINT = "pip install 'torchheat[dask]'  (or: pip install 'dask[distributed]')"
+
+
+class ExecutorError(RuntimeError):
+    """An executor that cannot run: no scheduler at the address, no workers, bad address."""
+
+
+def import_distributed() -> Any:
+    """``import distributed``, or an :class:`ImportError` that says what to install.
+
+    Examples
+    --------
+    >>> import_distributed().__name__  # doctest: +SKIP
+    'distributed'
+    """
+    try:
+        import distributed
+    except ImportError as exc:
+        raise ImportError(
+            f"running on Dask needs dask.distributed, which is not installed: {INSTALL_HINT}"
+        ) from exc
+    return distributed
+
+
+def _usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def parse_dask_address(spec: str) -> tuple[str, int | str]:
+    """Read a ``--dask`` value: ``("local", n_workers)`` or ``("remote", scheduler address)``.
+
+    ``local`` (one worker per usable CPU) or ``local:N`` start a LocalCluster; a scheduler
+    address is ``tcp://HOST:PORT`` (any ``protocol://``) or ``HOST:PORT`` (tcp).
+
+    Raises
+    ------
+    ExecutorError
+        On anything else, with the accepted forms.
+
+    Examples
+    --------
+    >>> parse_dask_address("local:2"), parse_dask_address("10.0.0.5:8786")
+    (('local', 2), ('remote', 'tcp://10.0.0.5:8786'))
+    """
+    s = str(spec).strip()
+    m = re.fullmatch(r"local(?::(\d+))?", s)
+    if m:
+        n = _usable_cpus() if m.group(1) is None else int(m.group(1))
+        if n < 1:
+            raise ExecutorError(f"--dask {s}: a local cluster needs at least 1 worker")
+        return "local", n
+    if re.fullmatch(r"[a-z][a-z0-9+.-]*://\S+", s):
+        return "remote", s
+    if re.fullmatch(r"[^\s:/]+:\d+", s):
+        return "remote", f"tcp://{s}"
+    raise ExecutorError(f"--dask {s!r}: expected local, local:N (N worker processes here) or "
+                        "a scheduler address tcp://HOST:PORT")
+
+
+class DaskExecutor:
+    """Run torchheat tasks on Dask distributed: a local cluster or an existing scheduler.
+
+    Parameters
+    ----------
+    address : str or distributed.Client
+        ``"local"`` / ``"local:N"``: start a :class:`distributed.LocalCluster` of N worker
+        processes (default: one per usable CPU) with one thread each, closed by
+        :meth:`close`; ``"tcp://HOST:PORT"``: connect to a running scheduler (its workers
+        must have torchheat installed and see the data); a ready ``Client`` is used as is
+        (and left open).
+    timeout : float
+        Seconds to reach the scheduler before :class:`ExecutorError`.
+    workers_timeout : float
+        Seconds to wait for at least one worker before :class:`ExecutorError`.
+    **cluster_kwargs
+        Extra :class:`distributed.LocalCluster` arguments for ``"local"`` (e.g. ``env`` for
+        the workers' environment, ``memory_limit``).
+
+    Attributes
+    ----------
+    client : distributed.Client
+    cluster : distributed.LocalCluster or None
+
+    Raises
+    ------
+    ImportError
+        Without dask.distributed (the message says what to install).
+    ExecutorError
+        Unreachable scheduler, not a Dask scheduler, no workers, malformed address.
+
+    Notes
+    -----
+    torchheat's tasks use one torch/BLAS thread each and keep per-process caches that are
+    not thread-safe: give workers one thread each and more processes
+    (``dask worker ADDRESS --nworkers N --nthreads 1``); :meth:`check_threads` warns
+    otherwise.
+
+    Examples
+    --------
+    >>> with DaskExecutor("local:2") as ex:  # doctest: +SKIP
+    ...     ex.n_threads, sorted(ex.map(abs, [-1, 2]))
+    (2, [1, 2])
+    """
+
+    def __init__(self, address: Any = "local", *, timeout: float = 30.0,
+                 workers_timeout: float = 60.0, **cluster_kwargs: Any) -> None:
+        distributed = import_distributed()
+        self.cluster = None
+        self._own_client = True
+        if isinstance(address, distributed.Client):
+            self.client = address
+            self._own_client = False
+            self.address = str(address.scheduler.address)
+            return
+        kind, where = parse_dask_address(address)
+        if kind == "local":
+            kw = {"n_workers": int(where), "threads_per_worker": 1, "processes": True,
+                  "dashboard_address": None}
+            kw.update(cluster_kwargs)
+            self.cluster = distributed.LocalCluster(**kw)
+            self.client = distributed.Client(self.cluster, timeout=timeout)
+            self.address = f"local:{where}"
+        else:
+            self.address = str(where)
+            try:
+                self.client = distributed.Client(self.address, timeout=timeout)
+            except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, garbage replies
+                raise ExecutorError(
+                    f"cannot reach a Dask scheduler at {self.address} within {timeout:g} s "
+                    f"({type(exc).__name__}: {exc}); start one with 'dask scheduler' and "
+                    "workers with 'dask worker ADDRESS --nthreads 1' (README: running on a "
+                    "cluster)") from None
+        try:
+            self.client.wait_for_workers(1, timeout=workers_timeout)
+        except Exception:  # noqa: BLE001 - TimeoutError, of dask's or the builtin one
+            self.close()
+            raise ExecutorError(
+                f"no Dask worker joined the scheduler at {self.address} within "
+                f"{workers_timeout:g} s; start some with 'dask worker {self.address} "
+                "--nthreads 1'") from None
+
+    # ---------------------------------------------------------------------------------
+    @property
+    def workers(self) -> dict[str, int]:
+        """Worker address -> threads, as the scheduler knows them now."""
+        return dict(self.client.nthreads())
+
+    @property
+    def n_threads(self) -> int:
+        """Threads over all workers now (tasks that can run at once)."""
+        return sum(self.workers.values())
+
+    def check_threads(self) -> str | None:
+        """A warning text if some worker runs several threads (see Notes), else None."""
+        many = {w: n for w, n in self.workers.items() if n > 1}
+        if not many:
+            return None
+        w, n = next(iter(many.items()))
+        return (f"{len(many)} Dask worker(s) run several threads (e.g. {w}: {n}); torchheat's "
+                "tasks want one thread per worker process: 'dask worker ADDRESS --nworkers N "
+                "--nthreads 1'")
+
+    def submit(self, fn: Callable[..., Any], *args: Any, key: str | None = None,
+               priority: int = 0) -> Any:
+        """``client.submit`` of an impure task (runs once per call); futures in ``args``
+        become the task's dependencies."""
+        return self.client.submit(fn, *args, key=key, pure=False, priority=priority)
+
+    def map(self, fn: Callable[[Any], Any], iterable: Iterable[Any]) -> Iterator[Any]:
+        """``fn`` over the items on the cluster; results in **completion** order.
+
+        A task that raises re-raises here (the remaining tasks are cancelled).
+        """
+        distributed = import_distributed()
+        futures = self.client.map(fn, list(iterable), pure=False)
+        try:
+            for _, result in distributed.as_completed(futures, with_results=True):
+                yield result
+        finally:
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def close(self) -> None:
+        """Close the client (if made here) and the local cluster (if started here)."""
+        if self._own_client:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+            self.cluster = None
+
+    def __enter__(self) -> DaskExecutor:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        try:
+            workers = len(self.workers)
+        except Exception:  # noqa: BLE001 - a closed client
+            workers = "?"
+        return f"DaskExecutor({self.address!r}, workers={workers})"
