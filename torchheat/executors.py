@@ -30,7 +30,10 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterable, Iterator
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Hashable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 __all__ = ["INSTALL_HINT", "DaskExecutor", "ExecutorError", "import_distributed",
@@ -59,6 +62,11 @@ def import_distributed() -> Any:
             f"running on Dask needs dask.distributed, which is not installed: {INSTALL_HINT}"
         ) from exc
     return distributed
+
+
+def _safe(name: str) -> str:
+    """A task-name fragment without characters that Dask keys or dashboards trip on."""
+    return re.sub(r"[^A-Za-z0-9_.#-]", "_", str(name))[:80]
 
 
 def _usable_cpus() -> int:
@@ -220,6 +228,143 @@ class DaskExecutor:
                 yield result
         finally:
             self.client.cancel([f for f in futures if not f.done()])
+
+    def map_shared(
+        self,
+        fn: Callable[..., Any],
+        items: Sequence[Any],
+        needs: Callable[[Any], Sequence[Hashable]],
+        shared_fn: Callable[[Any], Any],
+        shared: Mapping[Hashable, Any],
+        *,
+        window: int | None = None,
+        name: Callable[[Any], str] = str,
+        no_workers_timeout: float = 120.0,
+    ) -> Iterator[list[tuple[Any, Any, BaseException | None]]]:
+        """``fn(item, *[shared_fn(shared[s]) for s in needs(item)])`` for every item, each
+        shared input computed **once** as a task of its own and handed to every item that
+        needs it by Dask (moved between workers, recomputed if its worker dies).
+
+        Items are submitted in order, at most ``window`` at a time (default: 4 per worker
+        thread, at least 16), so the scheduler holds a bounded graph however many items there
+        are; a shared input is submitted with the first item that needs it and released
+        after the last one finished, so the cluster holds only those still in use.
+
+        Parameters
+        ----------
+        fn : callable
+            ``fn(item, *shared_results)``; must be picklable (a module-level function).
+        items : sequence
+            Work items, submitted in this order.
+        needs : callable
+            ``needs(item)``: the keys of ``shared`` the item depends on (in ``fn``'s order).
+        shared_fn : callable
+            Computes one shared input from ``shared[key]`` (e.g. a shape's eigenbasis).
+        shared : mapping
+            Key -> argument of ``shared_fn``.
+        window : int, optional
+            Items in flight at once.
+        name : callable
+            ``name(item)`` / ``name(key)``: readable task names (dashboard, logs).
+        no_workers_timeout : float
+            Seconds without any worker (all dead, none joining) before :class:`ExecutorError`
+            is raised instead of waiting for ever.
+
+        Yields
+        ------
+        list of (item, result, exception)
+            Finished items, in completion order, in batches of those that finished together;
+            ``exception`` is None or what ``fn`` or a shared input raised, or Dask's
+            ``KilledWorker`` when the item's worker died
+            ``distributed.scheduler.allowed-failures`` times.
+
+        Raises
+        ------
+        ExecutorError
+            The scheduler was lost, or no worker was left for ``no_workers_timeout`` s.
+
+        Examples
+        --------
+        >>> with DaskExecutor("local:2") as ex:  # doctest: +SKIP
+        ...     out = [r for batch in ex.map_shared(pow, [2, 3], lambda i: ["a"],
+        ...                                         abs, {"a": -2}) for _, r, _ in batch]
+        >>> sorted(out)
+        [4, 9]
+        """
+        distributed = import_distributed()
+        token = uuid.uuid4().hex[:8]
+        window = int(window or max(16, 4 * self.n_threads))
+        remaining: dict[Hashable, int] = {}
+        for item in items:
+            for s in dict.fromkeys(needs(item)):
+                remaining[s] = remaining.get(s, 0) + 1
+        futures: dict[Hashable, Any] = {}  # shared inputs in use
+        pending = deque(items)
+        running: dict[Any, Any] = {}  # future -> item
+        done = distributed.as_completed()
+        no_workers_since: float | None = None
+
+        def shared_future(s: Hashable) -> Any:
+            if s not in futures:  # priority 1: shared inputs run before waiting items
+                futures[s] = self.client.submit(
+                    shared_fn, shared[s], key=f"{_safe(name(s))}-{token}", pure=False,
+                    priority=1)
+            return futures[s]
+
+        try:
+            while pending or running:
+                while pending and len(running) < window:
+                    item = pending.popleft()
+                    deps = [shared_future(s) for s in needs(item)]
+                    fut = self.client.submit(fn, item, *deps, pure=False,
+                                             key=f"{_safe(name(item))}-{token}")
+                    running[fut] = item
+                    done.add(fut)
+                finished = done.next_batch(block=False)
+                if not finished:
+                    no_workers_since = self._check_alive(no_workers_since, no_workers_timeout)
+                    time.sleep(0.05)
+                    continue
+                no_workers_since = None
+                batch = []
+                for fut in finished:
+                    item = running.pop(fut)
+                    batch.append((item, *self._outcome(fut)))
+                    for s in dict.fromkeys(needs(item)):
+                        remaining[s] -= 1
+                        if remaining[s] == 0:
+                            futures.pop(s, None)  # the last reference: Dask frees it
+                yield batch
+        finally:
+            left = list(running) + list(futures.values())
+            if left and self.client.status == "running":
+                self.client.cancel(left)
+
+    def _outcome(self, fut: Any) -> tuple[Any, BaseException | None]:
+        if fut.status == "cancelled":
+            raise ExecutorError(f"the Dask scheduler at {self.address} cancelled task "
+                                f"{fut.key} (scheduler lost or restarted); the results "
+                                "written so far are kept: re-run to resume")
+        try:
+            return fut.result(), None
+        except Exception as exc:  # noqa: BLE001 - the caller decides (error records)
+            return None, exc
+
+    def _check_alive(self, since: float | None, timeout: float) -> float | None:
+        if self.client.status not in ("running", "connecting"):
+            raise ExecutorError(f"lost the Dask scheduler at {self.address} (client "
+                                f"{self.client.status}); the results written so far are "
+                                "kept: re-run to resume")
+        if self.workers:
+            return None
+        now = time.monotonic()
+        if since is None:
+            return now
+        if now - since > timeout:
+            raise ExecutorError(f"no Dask worker left at {self.address} for {timeout:g} s; "
+                                "the results written so far are kept: start workers and "
+                                "re-run to resume")
+        return since
 
     def close(self) -> None:
         """Close the client (if made here) and the local cluster (if started here)."""
