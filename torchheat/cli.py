@@ -707,7 +707,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Compute every shape's eigenpairs into the disk cache, one task per shape "
                     "(locally or on Dask); all arguments are passed to torchheat.batch (see "
                     "'torchheat preprocess --help').",
-        epilog="example:\n  torchheat preprocess configs/tosca5k.yaml --cache /shared/cache --dask local:2",
+        epilog="example:\n  torchheat preprocess configs/tosca5k.yaml --cache /shared/cache "
+               "--dask local:2",
     )
     return parser
 

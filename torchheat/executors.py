@@ -118,8 +118,9 @@ class DaskExecutor:
         :meth:`close`; ``"tcp://HOST:PORT"``: connect to a running scheduler (its workers
         must have torchheat installed and see the data); a ready ``Client`` is used as is
         (and left open).
-    timeout : float
-        Seconds to reach the scheduler before :class:`ExecutorError`.
+    timeout : float, optional
+        Seconds to reach the scheduler before :class:`ExecutorError` (default: Dask's
+        ``distributed.comm.timeouts.connect``, 30 s unless configured).
     workers_timeout : float
         Seconds to wait for at least one worker before :class:`ExecutorError`.
     **cluster_kwargs
@@ -152,9 +153,14 @@ class DaskExecutor:
     (2, [1, 2])
     """
 
-    def __init__(self, address: Any = "local", *, timeout: float = 30.0,
+    def __init__(self, address: Any = "local", *, timeout: float | None = None,
                  workers_timeout: float = 60.0, **cluster_kwargs: Any) -> None:
         distributed = import_distributed()
+        if timeout is None:
+            import dask
+            from dask.utils import parse_timedelta
+
+            timeout = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"))
         self.cluster = None
         self._own_client = True
         if isinstance(address, distributed.Client):
