@@ -34,6 +34,7 @@ import time
 import uuid
 from collections import deque
 from collections.abc import Callable, Hashable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import CancelledError
 from typing import Any
 
 __all__ = ["INSTALL_HINT", "DaskExecutor", "ExecutorError", "import_distributed",
@@ -307,8 +308,9 @@ class DaskExecutor:
         futures: dict[Hashable, Any] = {}  # shared inputs in use
         pending = deque(items)
         running: dict[Any, Any] = {}  # future -> item
-        done = distributed.as_completed()
+        done = distributed.as_completed(with_results=True)  # results fetched in the background
         no_workers_since: float | None = None
+        checked = time.monotonic()
 
         def shared_future(s: Hashable) -> Any:
             if s not in futures:  # priority 1: shared inputs run before waiting items
@@ -328,14 +330,17 @@ class DaskExecutor:
                     done.add(fut)
                 finished = done.next_batch(block=False)
                 if not finished:
-                    no_workers_since = self._check_alive(no_workers_since, no_workers_timeout)
-                    time.sleep(0.05)
+                    if time.monotonic() - checked > 2.0:
+                        no_workers_since = self._check_alive(no_workers_since,
+                                                             no_workers_timeout)
+                        checked = time.monotonic()
+                    time.sleep(0.02)
                     continue
                 no_workers_since = None
                 batch = []
-                for fut in finished:
+                for fut, result in finished:
                     item = running.pop(fut)
-                    batch.append((item, *self._outcome(fut)))
+                    batch.append((item, *self._outcome(fut, result)))
                     for s in dict.fromkeys(needs(item)):
                         remaining[s] -= 1
                         if remaining[s] == 0:
@@ -346,15 +351,15 @@ class DaskExecutor:
             if left and self.client.status == "running":
                 self.client.cancel(left)
 
-    def _outcome(self, fut: Any) -> tuple[Any, BaseException | None]:
-        if fut.status == "cancelled":
+    def _outcome(self, fut: Any, result: Any) -> tuple[Any, BaseException | None]:
+        """``(result, None)`` or ``(None, exception)`` of a finished future."""
+        if fut.status == "error":  # as_completed hands over (type, exception, traceback)
+            return None, result[1]
+        if fut.status == "cancelled" or isinstance(result, CancelledError):
             raise ExecutorError(f"the Dask scheduler at {self.address} cancelled task "
                                 f"{fut.key} (scheduler lost or restarted); the results "
                                 "written so far are kept: re-run to resume")
-        try:
-            return fut.result(), None
-        except Exception as exc:  # noqa: BLE001 - the caller decides (error records)
-            return None, exc
+        return result, None
 
     def _check_alive(self, since: float | None, timeout: float) -> float | None:
         if self.client.status not in ("running", "connecting"):
