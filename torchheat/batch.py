@@ -1318,7 +1318,7 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
     color_transfer = getattr(viz, "color_transfer", None)
     if color_transfer is None:
         return
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])  # meshes only: no eigensolve here
     index = {n: i for i, n in enumerate(pc.names)}
     for rec in results[: int(cfg["pictures"])]:
         png = out / "pictures" / f"{rec['name']}.png"
