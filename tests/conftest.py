@@ -43,6 +43,29 @@ def torus_faces(N: int):
     return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
 
 
+def kill_after_first_record(cmd: list[str], results: Path, env: dict | None = None,
+                            timeout: float = 60.0) -> int:
+    """Run ``cmd`` (a batch run) in a subprocess and SIGKILL it as soon as ``results`` holds a
+    complete line; returns the number of lines then. Fails if the run ends first."""
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and proc.poll() is None:
+            if results.is_file() and results.read_bytes().count(b"\n") >= 1:
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    return results.read_bytes().count(b"\n")
+
+
 def write_off(path: Path, V: np.ndarray, F: np.ndarray, *, raw_vertices: list[str] | None = None):
     """An OFF file of V, F (or of the given vertex lines)."""
     lines = ["OFF", f"{len(V)} {len(F)} 0"]

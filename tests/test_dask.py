@@ -12,14 +12,13 @@ import contextlib
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import ROOT, SHARED, deformed_spheres
+from conftest import ROOT, SHARED, deformed_spheres, kill_after_first_record
 
 distributed = pytest.importorskip("distributed")
 
@@ -165,22 +164,10 @@ def test_client_killed_then_resumed(data, cluster, tmp_path):
     out = tmp_path / "out"
     cfg = _config(tmp, meshes, out)
     address = cluster.client.scheduler.address  # an existing scheduler, as on a cluster
-    proc = subprocess.Popen(
+    n_before = kill_after_first_record(
         [sys.executable, "-m", "torchheat.cli", "evaluate", str(cfg), "--dask", address,
-         "--no-progress"], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    res = out / "results.jsonl"
-    try:
-        end = time.monotonic() + 120
-        while time.monotonic() < end and proc.poll() is None:
-            if res.is_file() and res.read_bytes().count(b"\n") >= 1:
-                break
-            time.sleep(0.02)
-        assert proc.poll() is None, "the run finished before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait(timeout=30)
-    n_before = res.read_bytes().count(b"\n")
+         "--no-progress"], out / "results.jsonl",
+        env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120)
     assert 1 <= n_before < len(ref)
     with deadline(180):
         resumed = batch.run(cfg, executor=cluster, progress=False)
