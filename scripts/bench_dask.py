@@ -4,6 +4,7 @@
     python scripts/bench_dask.py throughput [--config configs/tosca5k_timing.yaml] [--limit 24]
     python scripts/bench_dask.py overhead   [--tasks 2000]
     python scripts/bench_dask.py dataloader [--limit 24]
+    python scripts/bench_dask.py report OUTPUT
 
 ``throughput``: the same pairs by ``torchheat evaluate`` with ``--workers 2`` (process pool),
 ``--dask local:2`` (eigenbases moved by Dask) and ``--dask local:2`` with a fresh disk cache
@@ -229,6 +230,35 @@ def bench_dataloader(args: argparse.Namespace) -> None:
     print(f"eigensolves in the batch run: {sum(r['eigensolves'] for r in recs)}")
 
 
+def bench_report(args: argparse.Namespace) -> None:
+    """Work counts and times of a finished run, from its results.jsonl."""
+    recs = _records(Path(args.output))
+    metas = {m["id"]: m for r in recs for m in r.get("shapes", ())}
+    shapes = {m["name"] for m in metas.values()}
+    solved = [m for m in metas.values() if m["computed"]]
+    cold = [r for r in recs if r["time_eval"] > 1.0]
+    hosts: dict[str, int] = {}
+    for r in recs:
+        hosts[r.get("host", "?")] = hosts.get(r.get("host", "?"), 0) + 1
+    tgt: dict[str, int] = {}
+    for r in cold:
+        tgt[r["target"]] = tgt.get(r["target"], 0) + 1
+    print(f"pairs {len(recs)}, shapes {len(shapes)}, eigensolves: {len(solved)} in shape tasks "
+          f"(mean {np.mean([m['seconds'] for m in solved]):.2f} s each) + "
+          f"{sum(r.get('eigensolves', 0) for r in recs)} in pair tasks")
+    for key in ("time_prepare", "time_match", "time_eval"):
+        v = np.array([r[key] for r in recs])
+        print(f"{key}: mean {v.mean():.2f} s, median {np.median(v):.2f} s, total {v.sum():.0f} s")
+    print(f"evaluations with a cold target (> 1 s): {len(cold)}, mean "
+          f"{np.mean([r['time_eval'] for r in cold]) if cold else 0:.1f} s; per target: "
+          f"{np.mean(list(tgt.values())) if tgt else 0:.2f} (max {max(tgt.values(), default=0)})")
+    print(f"pairs per worker process: {sorted(hosts.values())}")
+    u = np.mean([r["direct"]["under_0.25"] for r in recs])
+    f = np.mean([r["flip"]["under_0.25"] for r in recs if r.get("flip")])
+    print(f"accuracy: {100 * u:.1f} % under 0.25 ({100 * f:.1f} % flip-aware), mean error "
+          f"{np.mean([r['direct']['mean'] for r in recs]):.4f}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -240,9 +270,11 @@ def main(argv: list[str] | None = None) -> None:
     o.add_argument("--tasks", type=int, default=2000)
     d = sub.add_parser("dataloader")
     d.add_argument("--limit", type=int, default=24)
+    r = sub.add_parser("report")
+    r.add_argument("output", help="a run's output folder")
     args = ap.parse_args(argv)
     {"throughput": bench_throughput, "overhead": bench_overhead,
-     "dataloader": bench_dataloader}[args.what](args)
+     "dataloader": bench_dataloader, "report": bench_report}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -211,14 +211,16 @@ def test_worker_without_the_data_folder_is_named(cluster, tmp_path, monkeypatch)
     cfg = {"name": "nodata", "output": str(tmp_path / "out"), "dataset": "tosca_remeshed_5k",
            "dataset_args": {"classes": ["wolf"]}, "match": {"method": "paper"}, "pictures": 0}
     workers = sorted(cluster.workers)
-    cluster.client.run(os.environ.__setitem__, "TORCHHEAT_DATA", str(tmp_path / "nowhere"),
-                       workers=workers[:1])
+
+    def setenv(value):  # pickled by value: runs on the worker, sets the worker's environment
+        os.environ["TORCHHEAT_DATA"] = value
+
+    cluster.client.run(setenv, str(tmp_path / "nowhere"), workers=workers[:1])
     try:
         with deadline(60), pytest.raises(ExecutorError) as exc:
             batch.run(cfg, executor=cluster, progress=False)
     finally:
-        cluster.client.run(os.environ.__setitem__, "TORCHHEAT_DATA", str(SHARED),
-                           workers=workers[:1])
+        cluster.client.run(setenv, str(SHARED), workers=workers[:1])
     msg = str(exc.value)
     assert f"1 of 2 Dask workers cannot take part: {workers[0]}" in msg
     assert f"dataset folder {tmp_path / 'nowhere'} not found" in msg
