@@ -295,7 +295,7 @@ class DaskExecutor:
         >>> with DaskExecutor("local:2") as ex:  # doctest: +SKIP
         ...     out = [r for batch in ex.map_shared(pow, [2, 3], lambda i: ["a"],
         ...                                         abs, {"a": -2}) for _, r, _ in batch]
-        >>> sorted(out)
+        >>> sorted(out)  # doctest: +SKIP
         [4, 9]
         """
         distributed = import_distributed()
