@@ -47,37 +47,50 @@ def _eigensolves(recs: list[dict]) -> int:
 
 
 def bench_throughput(args: argparse.Namespace) -> None:
-    tmp = Path(tempfile.mkdtemp(prefix="bench_dask_"))
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    rows = []
-    runs = [("--workers 2 (process pool)", ["--workers", "2"], None),
-            ("--dask local:2 (eigenbases moved by Dask)", ["--dask", "local:2"], None),
-            ("--dask local:2 (eigenbases through the disk cache)", ["--dask", "local:2"],
-             "cache")]
-    for rep in range(args.repeat):
-        for label, flags, cache in runs:
-            out = tmp / f"run{rep}_{len(rows)}"
-            cfg = out.with_suffix(".yaml")
-            import yaml
+    import resource
 
+    import yaml
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_dask_"))
+    base = dict(os.environ, PYTHONPATH=str(ROOT))
+    noprof = dict(base, DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED="False")
+    runs = {"pool": ("--workers 2 (process pool)", ["--workers", "2"], None, base),
+            "dask": ("--dask local:2 (eigenbases moved by Dask)", ["--dask", "local:2"], None,
+                     base),
+            "cache": ("--dask local:2 (eigenbases through the disk cache)",
+                      ["--dask", "local:2"], "cache", base),
+            "noprof": ("--dask local:2, Dask's worker profiler off", ["--dask", "local:2"],
+                       None, noprof)}
+    order = args.runs.split(",")
+    rows = []
+    for rep in range(args.repeat):
+        for which in order[rep % len(order):] + order[:rep % len(order)]:  # rotate the order
+            label, flags, cache, env = runs[which]
+            out = tmp / f"run{len(rows)}"
+            cfg = out.with_suffix(".yaml")
             raw = yaml.safe_load(Path(args.config).read_text())
             raw.update(output=str(out), pictures=0, limit=args.limit)
             if cache:
                 raw["cache"] = str(tmp / f"cache{len(rows)}")  # fresh: shapes solved once
             cfg.write_text(yaml.safe_dump(raw))
+            ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
             subprocess.run([sys.executable, "-m", "torchheat.cli", "evaluate", str(cfg),
                             "--no-progress", *flags], cwd=ROOT, env=env, check=True,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             wall = time.perf_counter() - t0
+            ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
             recs = _records(out)
             per = np.mean([r["time_prepare"] + r["time_match"] for r in recs])
             ev = np.mean([r["time_eval"] for r in recs])
             rows.append((label, len(recs), f"{wall:.1f}", f"{len(recs) / wall * 60:.1f}",
+                         f"{cpu:.0f}", f"{cpu / len(recs):.2f}", f"{cpu / wall:.2f}",
                          f"{per:.2f}", f"{ev:.2f}", _eigensolves(recs)))
             print(rows[-1], flush=True)
-    print("\n| run | pairs | wall s | pairs / min | prepare+match s / pair | eval s / pair | "
-          "eigensolves |\n|---|---|---|---|---|---|---|")
+    print("\n| run | pairs | wall s | pairs / min | CPU s (all processes) | CPU s / pair | "
+          "cores used | prepare+match s / pair | eval s / pair | eigensolves |\n"
+          "|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print("| " + " | ".join(str(x) for x in r) + " |")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -266,6 +279,7 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--config", default=str(ROOT / "configs" / "tosca5k_timing.yaml"))
     t.add_argument("--limit", type=int, default=24)
     t.add_argument("--repeat", type=int, default=1)
+    t.add_argument("--runs", default="pool,dask,cache", help="of pool, dask, cache, noprof")
     o = sub.add_parser("overhead")
     o.add_argument("--tasks", type=int, default=2000)
     d = sub.add_parser("dataloader")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 import time
 import uuid
 from collections import deque
@@ -38,7 +39,7 @@ from concurrent.futures import CancelledError
 from typing import Any
 
 __all__ = ["INSTALL_HINT", "DaskExecutor", "ExecutorError", "import_distributed",
-           "parse_dask_address"]
+           "parse_dask_address", "relax_malloc_trim"]
 
 #: What to install for the Dask executor.
 INSTALL_HINT = "pip install 'torchheat[dask]'  (or: pip install 'dask[distributed]')"
@@ -106,6 +107,57 @@ def parse_dask_address(spec: str) -> tuple[str, int | str]:
         return "remote", f"tcp://{s}"
     raise ExecutorError(f"--dask {s!r}: expected local, local:N (N worker processes here) or "
                         "a scheduler address tcp://HOST:PORT")
+
+
+#: glibc ``mallopt`` parameters (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def relax_malloc_trim() -> bool:
+    """Undo the cost of Dask's ``MALLOC_TRIM_THRESHOLD_`` in this worker process (Linux).
+
+    Dask's nanny starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand freed memory
+    back to the OS). Setting it also switches off glibc's dynamic mmap threshold, so every
+    allocation of 128 KiB or more is a fresh ``mmap`` whose pages fault in on first touch and
+    go back on ``free``: numeric code that makes many MB-sized temporaries (a matching pair
+    does) spent ~30 % more CPU time per task (BENCHMARKS.md, "Dask"). This sets the mmap
+    threshold to 32 MiB and the trim threshold to 64 MiB, the values glibc's dynamic threshold
+    reaches by itself. Does nothing (returns False) when the variable is not set or libc has
+    no ``mallopt``.
+
+    Examples
+    --------
+    >>> relax_malloc_trim() in (True, False)
+    True
+    """
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        ok = libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20) and libc.mallopt(_M_TRIM_THRESHOLD,
+                                                                        64 << 20)
+    except (OSError, AttributeError):  # not glibc
+        return False
+    return bool(ok)
+
+
+_RELAXED: list[bool] = []  # relax_malloc_trim() done in this (worker) process
+
+
+class _Relaxed:
+    """``fn`` wrapped for a Dask worker: :func:`relax_malloc_trim` once per process first."""
+
+    def __init__(self, fn: Callable[..., Any]) -> None:
+        self.fn = fn
+        self.__name__ = getattr(fn, "__name__", "task")  # Dask's key prefix
+
+    def __call__(self, *args: Any) -> Any:
+        if not _RELAXED:
+            relax_malloc_trim()
+            _RELAXED.append(True)
+        return self.fn(*args)
 
 
 class DaskExecutor:
@@ -217,19 +269,13 @@ class DaskExecutor:
                 "tasks want one thread per worker process: 'dask worker ADDRESS --nworkers N "
                 "--nthreads 1'")
 
-    def submit(self, fn: Callable[..., Any], *args: Any, key: str | None = None,
-               priority: int = 0) -> Any:
-        """``client.submit`` of an impure task (runs once per call); futures in ``args``
-        become the task's dependencies."""
-        return self.client.submit(fn, *args, key=key, pure=False, priority=priority)
-
     def map(self, fn: Callable[[Any], Any], iterable: Iterable[Any]) -> Iterator[Any]:
         """``fn`` over the items on the cluster; results in **completion** order.
 
         A task that raises re-raises here (the remaining tasks are cancelled).
         """
         distributed = import_distributed()
-        futures = self.client.map(fn, list(iterable), pure=False)
+        futures = self.client.map(_Relaxed(fn), list(iterable), pure=False)
         try:
             for _, result in distributed.as_completed(futures, with_results=True):
                 yield result
@@ -300,6 +346,7 @@ class DaskExecutor:
         """
         distributed = import_distributed()
         token = uuid.uuid4().hex[:8]
+        fn, shared_fn = _Relaxed(fn), _Relaxed(shared_fn)
         window = int(window or max(16, 4 * self.n_threads))
         remaining: dict[Hashable, int] = {}
         for item in items:
