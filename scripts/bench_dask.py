@@ -100,7 +100,7 @@ def _noop(x):
     return x
 
 
-def _pair_of(a, b):
+def _pair_of(*args):
     return 0
 
 
