@@ -43,6 +43,53 @@ def torus_faces(N: int):
     return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
 
 
+def kill_after_first_record(cmd: list[str], results: Path, env: dict | None = None,
+                            timeout: float = 60.0) -> int:
+    """Run ``cmd`` (a batch run) in a subprocess and SIGKILL it as soon as ``results`` holds a
+    complete line; returns the number of lines then. Fails if the run ends first."""
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and proc.poll() is None:
+            if results.is_file() and results.read_bytes().count(b"\n") >= 1:
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    return results.read_bytes().count(b"\n")
+
+
+def write_off(path: Path, V: np.ndarray, F: np.ndarray, *, raw_vertices: list[str] | None = None):
+    """An OFF file of V, F (or of the given vertex lines)."""
+    lines = ["OFF", f"{len(V)} {len(F)} 0"]
+    lines += raw_vertices if raw_vertices is not None else [
+        f"{x:.17g} {y:.17g} {z:.17g}" for x, y, z in V
+    ]
+    lines += [f"3 {a} {b} {c}" for a, b, c in F]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def deformed_spheres(folder: Path, n: int = 4, subdivisions: int = 3) -> list[Path]:
+    """``n`` OFF files of one generic sphere (same connectivity: identity ground truth), each
+    bent and rescaled differently (near-isometric to each other)."""
+    V, F = generic_sphere(subdivisions)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(n):
+        a = 0.15 * i
+        bend = np.stack([V[:, 0], V[:, 1] + a * V[:, 0] ** 2, V[:, 2]], axis=1)
+        out.append(write_off(folder / f"blob{i}.off", bend * (1 + 0.02 * i), F))
+    return out
+
+
 @pytest.fixture
 def sphere_mesh():
     from torchheat import Mesh

@@ -5,15 +5,13 @@ from __future__ import annotations
 import csv
 import json
 import os
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from conftest import kill_after_first_record
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -122,22 +120,9 @@ def test_resume_after_sigkill(reference):
     out = tmp / "killed"
     cfg = _config(tmp, out)
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.Popen(
+    n_before = kill_after_first_record(
         [sys.executable, str(ROOT / "scripts" / "evaluate.py"), str(cfg), "--no-progress"],
-        cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
-    res = out / "results.jsonl"
-    try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and proc.poll() is None:
-            if res.is_file() and res.read_bytes().count(b"\n") >= 1:
-                break
-            time.sleep(0.05)
-        assert proc.poll() is None, "run finished before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait(timeout=30)
-    n_before = res.read_bytes().count(b"\n")
+        out / "results.jsonl", env=env)
     assert 1 <= n_before < 3
     resumed = batch.run(cfg, progress=False)
     lines = _lines(out)

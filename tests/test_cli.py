@@ -9,21 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, flat_grid, generic_sphere
+from conftest import DATA, flat_grid, generic_sphere, write_off
 
 from torchheat.cli import main
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def write_off(path: Path, V: np.ndarray, F: np.ndarray, *, raw_vertices: list[str] | None = None):
-    lines = ["OFF", f"{len(V)} {len(F)} 0"]
-    lines += raw_vertices if raw_vertices is not None else [
-        f"{x:.17g} {y:.17g} {z:.17g}" for x, y, z in V
-    ]
-    lines += [f"3 {a} {b} {c}" for a, b, c in F]
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def rotation(seed: int = 3) -> np.ndarray:

@@ -347,3 +347,57 @@ def test_worker_init_limits_torch_and_blas_threads():
     loader = DataLoader(_Threads(), batch_size=1, num_workers=2, collate_fn=collate_list,
                         worker_init_fn=worker_init)
     assert [b[0] for b in loader] == [(1, 1), (1, 1)]
+
+
+def test_match_and_symmetry_take_dataset_shapes_and_pairs(tmp_path, monkeypatch):
+    """A dataset shape's cached eigenpairs serve match/prepare/symmetry: no eigensolve, and
+    the same maps as from the meshes prepared with the same eigenpair count."""
+    from conftest import deformed_spheres
+
+    from torchheat import heat, match, prepare, symmetry
+
+    files = deformed_spheres(tmp_path / "m", n=2)
+    shapes = ShapeCollection(files, preprocess=Preprocess(k=30), cache_dir=tmp_path / "c")
+    shapes.fill_cache()
+    pc = pairs_from_list(shapes, [(0, 1)])
+    calls = []
+    orig = heat.HeatKernel._eigensolve
+    monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
+                        lambda self, k: calls.append(k) or orig(self, k))
+    loader = DataLoader(pc, batch_size=1, collate_fn=collate_list)
+    (pair,) = next(iter(loader))
+    corr = match(pair, method="paper")
+    prepared = prepare(pair.source)
+    sym = symmetry(pair.target, method="paper")
+    assert calls == []  # everything from the cache
+    assert prepared.hk.k == 30 and prepared.hk.times.numel() == 10
+    ref = match(prepare(pair.source.mesh, k=30), prepare(pair.target.mesh, k=30), method="paper")
+    assert calls == [30, 30]
+    assert torch.equal(corr.map, ref.map) and corr.landmarks == ref.landmarks
+    assert torch.equal(prepared.hk.times, prepare(pair.source.mesh, k=30).hk.times)
+    assert sym.map.shape == (pair.target.n_vertices,)
+    assert prepare(pair.source, k=40).hk.k == 40 and calls[-1] == 40  # more: solved again
+    with pytest.raises(TypeError, match="dataset Pair"):
+        match(pair.source)
+
+
+def test_ordered_pairs_and_fill_cache(tmp_path):
+    from conftest import deformed_spheres
+
+    files = deformed_spheres(tmp_path / "m", n=3, subdivisions=2)
+    shapes = ShapeCollection(files, classes=["blob"] * 3, preprocess=Preprocess(k=8),
+                             cache_dir=tmp_path / "c")
+    from torchheat.datasets import _within_class_pairs
+
+    assert _within_class_pairs(shapes, "ordered") == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0),
+                                                      (2, 1)]
+    assert not any(shapes.is_cached(i) for i in range(3))
+    first = shapes.fill_cache()
+    assert [d["computed"] for d in first] == [True] * 3 and all(map(shapes.is_cached, range(3)))
+    again = shapes.fill_cache()
+    assert [d["computed"] for d in again] == [False] * 3
+    assert [d["path"] for d in again] == [str(shapes.cache_path(i)) for i in range(3)]
+    (tmp_path / "c" / Path(first[0]["path"]).name).write_bytes(b"broken")
+    assert not shapes.is_cached(0)
+    with pytest.warns(UserWarning, match="unusable cache entry"):
+        assert [d["computed"] for d in shapes.fill_cache()] == [True, False, False]

@@ -90,6 +90,7 @@ import sys
 import tempfile
 import time
 import traceback
+import uuid
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -108,6 +109,8 @@ __all__ = [
     "load_config",
     "load_results",
     "main",
+    "preprocess",
+    "preprocess_main",
     "run",
     "summarize_run",
 ]
@@ -120,7 +123,7 @@ _LOADERS = ("tosca_remeshed_5k", "tosca_remeshed_5k_symmetry", "scape", "tosca_h
             "folder")
 _TASKS = ("match", "symmetry")
 _CONFIG_KEYS = {"name", "dataset", "dataset_args", "task", "match", "prepare", "limit",
-                "eval_points", "output", "pictures", "distortion", "cache"}
+                "eval_points", "output", "pictures", "distortion", "cache", "executor"}
 _PREPARE_KEYS = {"k", "feature_time", "rtol", "kind", "boundary"}
 RESULTS = "results.jsonl"
 
@@ -150,9 +153,10 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
     -------
     dict
         Keys ``name, dataset, dataset_args, task, match, prepare, limit, eval_points, output,
-        pictures, distortion, cache`` (``output`` defaults to ``out/<name>``; ``cache``:
-        None or the folder of the per-shape disk cache, ``true`` meaning
-        :func:`torchheat.datasets.default_cache_dir`).
+        pictures, distortion, cache, executor`` (``output`` defaults to ``out/<name>``;
+        ``cache``: None or the folder of the per-shape disk cache, ``true`` meaning
+        :func:`torchheat.datasets.default_cache_dir`; ``executor``: ``{}`` (in-process),
+        ``{"workers": N}`` or ``{"dask": ADDRESS}``).
 
     Raises
     ------
@@ -198,6 +202,7 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
         "pictures": raw.get("pictures", 3),
         "distortion": raw.get("distortion", False),
         "cache": raw.get("cache", False),
+        "executor": raw.get("executor") or {},
     }
     if not isinstance(cfg["name"], str) or not cfg["name"].strip():
         raise ConfigError(f"{where}: 'name' (a non-empty string) is required")
@@ -233,12 +238,32 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
         cfg["cache"] = c
     else:
         raise ConfigError(f"{where}: 'cache' must be true, false or a folder, got {c!r}")
+    cfg["executor"] = _check_executor(cfg["executor"], where)
     if cfg["output"] is None:
         cfg["output"] = f"out/{cfg['name']}"
     cfg["output"] = str(cfg["output"])
     if cfg["dataset"] == "folder" and "path" not in cfg["dataset_args"]:
         raise ConfigError(f"{where}: dataset 'folder' needs dataset_args.path and .pairs")
     return cfg
+
+
+def _check_executor(spec: Any, where: str) -> dict[str, Any]:
+    """``executor: {dask: ADDRESS}`` or ``{workers: N}`` (or nothing: in-process)."""
+    if not isinstance(spec, dict) or set(spec) - {"dask", "workers"} or len(spec) > 1:
+        raise ConfigError(f"{where}: 'executor' must be {{dask: ADDRESS}} (local, local:N or "
+                          f"tcp://HOST:PORT) or {{workers: N}}, got {spec!r}")
+    if "workers" in spec:
+        n = spec["workers"]
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ConfigError(f"{where}: executor.workers must be an integer >= 1, got {n!r}")
+    if "dask" in spec:
+        from .executors import ExecutorError, parse_dask_address
+
+        try:
+            parse_dask_address(spec["dask"])
+        except ExecutorError as exc:
+            raise ConfigError(f"{where}: executor.dask: {exc}") from None
+    return dict(spec)
 
 
 def options_hash(cfg: Mapping[str, Any]) -> str:
@@ -348,10 +373,11 @@ def _geodesics(shape: Any) -> _TargetGeodesics:
 
 
 def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
-              prep_opts: Mapping[str, Any]) -> Any:
+              prep_opts: Mapping[str, Any], stats: dict[str, int] | None = None) -> Any:
     """Prepared shape for one role. Sources are never modified by :func:`torchheat.match`;
     targets get the source's time samples (a stateless re-plan), so a target is only ever
-    reused as a target."""
+    reused as a target. ``stats["eigensolves"]`` counts the eigensolves run here (none for a
+    shape with cached eigenpairs or already prepared in this process)."""
     from .heat import threads
     from .matching import prepare
 
@@ -368,20 +394,11 @@ def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
         return dataclasses.replace(base, hk=copy.copy(base.hk), timings=dict(base.timings))
 
     def make_base() -> Any:
+        cached = getattr(shape, "data", None) is not None  # eigenbasis from the disk cache
+        if not cached and stats is not None:
+            stats["eigensolves"] = stats.get("eigensolves", 0) + 1
         with threads(match_opts.get("num_threads")):
-            if getattr(shape, "data", None) is None:
-                return prepare(shape.mesh, **kw)
-            # eigenbasis from the disk cache: no eigensolve
-            adaptive = kw["times"] == "adaptive"
-            times = None if kw["times"] in ("adaptive", "paper") else kw["times"]
-            hk_kw = {k: kw[k] for k in ("k", "rtol") if k in kw}
-            hk = shape.heat_kernel(times=times, method="spectral" if adaptive else "auto",
-                                   **hk_kw)
-            if adaptive:
-                hk.set_times(hk.adaptive_times())
-            return prepare(shape.mesh, hk=hk, max_features=kw["max_features"],
-                           **({"feature_time": kw["feature_time"]}
-                              if "feature_time" in kw else {}))
+            return prepare(shape if cached else shape.mesh, **kw)
 
     return _PREPARED[role].get_or(key, make)
 
@@ -467,6 +484,8 @@ tosca_remeshed_5k_symmetry`).
         ``name, cls, source, target, task, n_source, n_target, n_eval``;
         ``time_prepare`` (s, preparing the shapes — 0 when memoised), ``time_match`` (s, the
         :func:`~torchheat.match` call), ``time_eval`` (s), ``timings`` (the matcher's stages);
+        ``eigensolves``: those run by this call (0 when the shapes' eigenpairs came cached
+        or were memoised in this process);
         ``direct``: :func:`~torchheat.evaluate.summarize` of the errors against the direct
         gt (``mean, under_0.25, under_0.1, under_0.05, exact``); ``flip``: the same for the
         flip-aware error (direct or symmetric gt, chosen for the map as a whole) or ``None``
@@ -491,15 +510,18 @@ tosca_remeshed_5k_symmetry`).
         raise ValueError(f"pair {pair.name} has no ground truth")
     t0 = time.perf_counter()
     time_prepare = 0.0
+    stats = {"eigensolves": 0}
     if task == "match":
-        src = _prepared(pair.source, "source", opts, prepare or {})
-        tgt = _prepared(pair.target, "target", opts, prepare or {})
+        src = _prepared(pair.source, "source", opts, prepare or {}, stats)
+        tgt = _prepared(pair.target, "target", opts, prepare or {}, stats)
         time_prepare = time.perf_counter() - t0
         t1 = time.perf_counter()
         corr = match(src, tgt, **opts)
     elif task == "symmetry":
         t1 = time.perf_counter()
-        corr = symmetry(pair.source.mesh, **opts)
+        cached = getattr(pair.source, "data", None) is not None
+        stats["eigensolves"] += not cached
+        corr = symmetry(pair.source if cached else pair.source.mesh, **opts)
     else:
         raise ValueError(f"unknown task {task!r}; use 'match' or 'symmetry'")
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
@@ -550,6 +572,7 @@ tosca_remeshed_5k_symmetry`).
         "time_match": time_match,
         "time_eval": time_eval,
         "time_quality": time_quality,
+        "eigensolves": stats["eigensolves"],
         "timings": {k: float(v) for k, v in corr.info.get("timings", {}).items()},
         "direct": _summary(direct),
         "flip": None if flip_err is None else _summary(flip_err),
@@ -598,6 +621,28 @@ def _freeze(d: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
     return tuple(sorted((str(k), v) for k, v in d.items()))
 
 
+@dataclass(frozen=True)
+class ShapeTask:
+    """A picklable unit of shape preprocessing (Dask runs): one shape of a dataset, its
+    eigenbasis computed once per run for every pair that uses it."""
+
+    dataset: str
+    dataset_args: tuple[tuple[str, Any], ...]
+    index: int
+    name: str
+    prepare: tuple[tuple[str, Any], ...]
+    cache: str | None = None
+
+
+def _preprocess_of(prep: Mapping[str, Any]) -> Any:
+    """The :class:`~torchheat.datasets.Preprocess` of a config's ``prepare`` options."""
+    from .datasets import Preprocess
+    from .eigen import DEFAULT_EIGENPAIRS
+
+    return Preprocess(k=int(prep.get("k", DEFAULT_EIGENPAIRS)), kind=prep.get("kind", "cotan"),
+                      boundary=prep.get("boundary", "neumann"))
+
+
 def _load_dataset(dataset: str, args: Mapping[str, Any], cache: str | None = None,
                   prep: Mapping[str, Any] | None = None) -> Any:
     """The pair collection of a config (memoised per process). With ``cache`` (a folder) its
@@ -610,9 +655,7 @@ def _load_dataset(dataset: str, args: Mapping[str, Any], cache: str | None = Non
     def make() -> Any:
         kw = dict(args)
         if cache:
-            kw["preprocess"] = datasets.Preprocess(
-                k=int(prep.get("k", 100)), kind=prep.get("kind", "cotan"),
-                boundary=prep.get("boundary", "neumann"))
+            kw["preprocess"] = _preprocess_of(prep)
             kw["cache_dir"] = cache
         if dataset == "folder":
             pairs = kw.pop("pairs", None)
@@ -637,21 +680,104 @@ def _dataset_key(dataset: str, args: Mapping[str, Any], cache: str | None,
             json.dumps(extra, sort_keys=True))
 
 
-def _run_task(task: PairTask) -> dict[str, Any]:
-    """Executor entry point: load the pair, evaluate it; exceptions become error records."""
+def _last_line(exc: BaseException) -> str:
+    return traceback.format_exception_only(type(exc), exc)[-1].strip()
+
+
+def _run_task(task: PairTask, *shapes: Mapping[str, Any]) -> dict[str, Any]:
+    """Executor entry point: load the pair, evaluate it; exceptions become error records.
+
+    ``shapes``: the results of the pair's :class:`ShapeTask` s (Dask runs), whose eigenbases
+    are used instead of solving again."""
     try:
         pc = _load_dataset(task.dataset, dict(task.dataset_args), task.cache, dict(task.prepare))
-        pair = pc[task.index]
+        pair = _pair_with_shapes(pc, task, shapes) if shapes else pc[task.index]
         if pair.name != task.name:
             raise RuntimeError(f"pair {task.index} is {pair.name}, expected {task.name}")
         rec = evaluate_pair(pair, dict(task.match), task=task.task, prepare=dict(task.prepare),
                             eval_points=task.eval_points, distortion=task.distortion,
                             keep_map=task.keep_map)
     except Exception as exc:  # noqa: BLE001 - reported by run(), the run goes on
-        last = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        return {"key": task.key, "name": task.name, "error": last}
-    rec = {"key": task.key, "options_hash": task.options_hash, **rec}
+        return {"key": task.key, "name": task.name, "error": _last_line(exc)}
+    from .datasets import host_id
+
+    rec = {"key": task.key, "options_hash": task.options_hash, **rec, "host": host_id()}
+    if shapes:
+        rec["shapes"] = [dict(s["meta"]) for s in shapes]
     return rec
+
+
+def _pair_with_shapes(pc: Any, task: PairTask, shapes: Sequence[Mapping[str, Any]]) -> Any:
+    """The pair, its shapes carrying the eigenbases their shape tasks computed: from the disk
+    cache (``task.cache``: the entries must be visible here) or handed over by Dask."""
+    from .datasets import host_id
+
+    for s in shapes:
+        if "error" in s:
+            raise RuntimeError(f"preprocessing {s['name']} failed: {s['error']}")
+    if task.cache:
+        a, b = pc.pairs[task.index]
+        for i in dict.fromkeys((a, b)):
+            if not pc.shapes.is_cached(i):
+                meta = next(s["meta"] for s in shapes if s["name"] == pc.shapes.names[i])
+                raise RuntimeError(
+                    f"the cache entry of {pc.shapes.names[i]} ({meta['path']}), written on "
+                    f"{meta['host']}, is not visible on {host_id()}: the cache folder must "
+                    "be on storage shared by all workers, at the same path")
+        return pc[task.index]
+    import torch
+
+    pp = _preprocess_of(dict(task.prepare))
+    data = {s["name"]: s["data"] for s in shapes}
+    pair = pc[task.index]
+
+    def attach(shape: Any) -> Any:
+        d = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v
+             for k, v in data[shape.name].items()}
+        return dataclasses.replace(shape, data=d, preprocess=pp)
+
+    src = attach(pair.source)
+    tgt = src if pair.target is pair.source else attach(pair.target)
+    return dataclasses.replace(pair, source=src, target=tgt)
+
+
+def _run_shape(st: ShapeTask) -> dict[str, Any]:
+    """Dask task: one shape's preprocessing (the eigensolve), once per run.
+
+    With a cache folder, the disk cache entry (computed and written if missing; the pair tasks
+    read it); without, the eigenbasis itself (numpy arrays, ~4.5 MB for a 5k-vertex shape at
+    k = 100), which Dask hands to the pair tasks. Errors are returned, not raised, so that
+    every pair of the shape gets an error record that names it."""
+    from .datasets import fill_cache_entry, host_id
+
+    _worker_init_once()
+    try:
+        t0 = time.perf_counter()
+        pc = _load_dataset(st.dataset, dict(st.dataset_args), st.cache, dict(st.prepare))
+        shapes = pc.shapes
+        if shapes.names[st.index] != st.name:
+            raise RuntimeError(f"shape {st.index} is {shapes.names[st.index]}, expected "
+                               f"{st.name}")
+        out: dict[str, Any] = {"name": st.name}
+        if st.cache:
+            meta = fill_cache_entry(shapes.cache_job(st.index))
+        else:
+            from .mesh import load_mesh
+
+            d = _preprocess_of(dict(st.prepare))(load_mesh(shapes.paths[st.index]))
+            out["data"] = {k: _to_np(v) if hasattr(v, "detach") else v for k, v in d.items()}
+            meta = {"name": st.name, "computed": True, "seconds": time.perf_counter() - t0,
+                    "host": host_id()}
+        out["meta"] = {**meta, "id": uuid.uuid4().hex[:12]}
+        return out
+    except Exception as exc:  # noqa: BLE001 - becomes an error record of each pair
+        return {"name": st.name, "error": _last_line(exc)}
+
+
+def _dask_pair(task: PairTask, *shapes: Mapping[str, Any]) -> dict[str, Any]:
+    """Dask task: one pair (:func:`_run_task` in a worker set to one thread)."""
+    _worker_init_once()
+    return _run_task(task, *shapes)
 
 
 def _worker_init() -> None:
@@ -659,6 +785,31 @@ def _worker_init() -> None:
 
     worker_init()  # torch and BLAS at one thread (oversubscribed BLAS: eigensolves 10-30x)
     warnings.filterwarnings("ignore", category=UserWarning, module="torchheat.operators")
+
+
+_WORKER_READY: list[bool] = []  # set once per Dask worker process
+
+
+def _worker_init_once() -> None:
+    if not _WORKER_READY:
+        _worker_init()
+        _WORKER_READY.append(True)
+
+
+def _probe_worker(dataset: str, args: Mapping[str, Any], cache: str | None) -> str | None:
+    """Run on every Dask worker before a run: None, or why this worker cannot take part (the
+    dataset folder or the cache folder not visible or not writable there)."""
+    from .datasets import host_id
+
+    try:
+        _load_dataset(dataset, args)
+        if cache:
+            Path(cache).mkdir(parents=True, exist_ok=True)
+            if not os.access(cache, os.W_OK | os.X_OK):
+                return f"{host_id()}: cache folder {cache} is not writable"
+    except Exception as exc:  # noqa: BLE001 - reported by the client
+        return f"{host_id()}: {_last_line(exc)}"
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -700,11 +851,14 @@ def load_results(path: str | os.PathLike, repair: bool = True) -> list[dict[str,
     return out
 
 
-def _append_line(path: Path, rec: Mapping[str, Any]) -> None:
-    line = (json.dumps(rec, allow_nan=False, default=_json_default) + "\n").encode()
+def _append_lines(path: Path, recs: Sequence[Mapping[str, Any]]) -> None:
+    """Append records, one JSON line each, in one ``O_APPEND`` write and one ``fsync`` (a
+    batch of records that finished together costs one fsync)."""
+    data = b"".join((json.dumps(r, allow_nan=False, default=_json_default) + "\n").encode()
+                    for r in recs)
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        view = memoryview(line)
+        view = memoryview(data)
         while view:
             n = os.write(fd, view)
             view = view[n:]
@@ -778,6 +932,84 @@ def _in_completion_order(executor: Any, fn: Callable, tasks: list) -> Iterator[d
         yield from executor.map(fn, tasks)
 
 
+def _as_dask(executor: Any) -> Any:
+    """The :class:`~torchheat.executors.DaskExecutor` of ``executor`` (one, or a
+    ``distributed.Client`` wrapped), else None."""
+    if executor is None:
+        return None
+    from .executors import DaskExecutor
+
+    if isinstance(executor, DaskExecutor):
+        return executor
+    cls = type(executor)
+    if cls.__module__.split(".")[0] == "distributed" and cls.__name__ == "Client":
+        return DaskExecutor(executor)
+    return None
+
+
+def _dask_batches(ex: Any, cfg: Mapping[str, Any], todo: list[PairTask]) -> Iterator[list]:
+    """Records of ``todo`` on Dask, in batches of those that finished together.
+
+    For ``task: match`` each shape is preprocessed by a :class:`ShapeTask` of its own, once
+    per run, and every pair task depends on its two shapes' tasks: an all-pairs run does one
+    eigensolve per shape (plus one per shape recomputed after its worker died). The
+    eigenbases reach the pair tasks through the disk cache when the config has one (entries
+    written by the shape tasks, read by the pair tasks: the folder must be shared), else
+    through Dask's own data transfers (nothing written; held by the workers until the last
+    pair of the shape is done)."""
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    with_shapes = cfg["task"] == "match"
+    shared: dict[int, ShapeTask] = {}
+
+    def needs(t: PairTask) -> tuple[int, ...]:
+        return tuple(dict.fromkeys(pc.pairs[t.index])) if with_shapes else ()
+
+    for t in todo:
+        for i in needs(t):
+            shared.setdefault(i, ShapeTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i,
+                                           pc.shapes.names[i], _freeze(cfg["prepare"]),
+                                           cfg.get("cache")))
+
+    def name(x: Any) -> str:
+        return f"pair-{x.name}" if isinstance(x, PairTask) else f"shape-{shared[x].name}"
+
+    for batch in ex.map_shared(_dask_pair, todo, needs, _run_shape, shared, name=name):
+        yield [rec if exc is None else _error_record(task, exc) for task, rec, exc in batch]
+
+
+def _error_record(task: PairTask, exc: BaseException) -> dict[str, Any]:
+    """The error record of a pair whose Dask task raised (its worker died too often, ...)."""
+    msg = " ".join(_last_line(exc).split())
+    if type(exc).__name__ == "KilledWorker":
+        msg += " (killed, or out of memory: see the workers' logs)"
+    return {"key": task.key, "name": task.name, "error": msg}
+
+
+def _preflight(ex: Any, cfg: Mapping[str, Any]) -> None:
+    """Every worker can import torchheat and see the data (and the cache folder), or a clear
+    error before any task runs; a warning for workers with several threads."""
+    from .executors import ExecutorError
+
+    args = dict(cfg["dataset_args"])
+    replies = ex.client.run(_probe_worker, cfg["dataset"], args, cfg.get("cache"),
+                            on_error="return")
+    bad = []
+    for worker, reply in sorted(replies.items()):
+        if isinstance(reply, BaseException):
+            bad.append(f"{worker}: cannot run torchheat there ({_last_line(reply)}); install "
+                       "torchheat (the same version) on every worker")
+        elif reply is not None:
+            bad.append(f"{worker} ({reply})")
+    if bad:
+        raise ExecutorError(f"{len(bad)} of {len(replies)} Dask workers cannot take part: "
+                            + "; ".join(bad[:3]) + (" ..." if len(bad) > 3 else "")
+                            + ". The dataset (and cache) folders must be visible on every "
+                            "worker at the configured path or at its $TORCHHEAT_DATA")
+    warning = ex.check_threads()
+    if warning:
+        warnings.warn(warning, stacklevel=3)
+
+
 def _tasks(cfg: Mapping[str, Any]) -> list[PairTask]:
     pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
     names = pc.names
@@ -817,7 +1049,10 @@ def run(
         processes (one torch thread each). Ignored when ``executor`` is given.
     executor : object with ``map(fn, iterable)``, optional
         Any executor; a :class:`concurrent.futures.Executor` is driven through ``submit`` so
-        records are written as they finish. See the module docstring for a Dask adapter.
+        records are written as they finish. A :class:`torchheat.executors.DaskExecutor` (or a
+        ``distributed.Client``) runs one task per shape and one per pair (see
+        :func:`_dask_batches`). Default: the config's ``executor`` (``{dask: ADDRESS}``: a
+        DaskExecutor made and closed here, ``{workers: N}``), else in-process.
     progress : bool
         tqdm progress bar on stderr.
 
@@ -827,11 +1062,18 @@ def run(
         The records of this config's pairs (dataset order), old and new; failed pairs are
         reported on stderr and left out (a re-run retries them).
 
+    Notes
+    -----
+    Whatever the executor, the records are written by this process only, one line per pair
+    (a pair delivered twice is written once), and a killed run resumes where it stopped.
+
     Examples
     --------
     >>> results = run("configs/smoke.yaml", progress=False)  # doctest: +SKIP
     >>> len(results)  # doctest: +SKIP
     3
+    >>> results = run({**load_config("configs/smoke.yaml"),  # doctest: +SKIP
+    ...                "executor": {"dask": "local:2"}})
     """
     from tqdm import tqdm
 
@@ -839,7 +1081,7 @@ def run(
     out = Path(cfg["output"])
     out.mkdir(parents=True, exist_ok=True)
     failed: list[dict[str, Any]] = []
-    with _lock(out):
+    with _lock(out), contextlib.ExitStack() as owned:
         import yaml
 
         _write_text(out / "config.yaml", yaml.safe_dump(cfg, sort_keys=False))
@@ -848,15 +1090,31 @@ def run(
         by_key = {r["key"]: r for r in load_results(path)}
         todo = [t for t in tasks if t.key not in by_key]
         todo.sort(key=_target_of)  # stable: consecutive pairs share the target's fields
-        own_pool = None
-        if executor is None and workers > 1 and len(todo) > 1:
-            own_pool = cf.ProcessPoolExecutor(max_workers=int(workers),
-                                              initializer=_worker_init)
-            executor = own_pool
-        bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), file=sys.stderr,
-                   disable=not progress, desc=cfg["name"], unit="pair", dynamic_ncols=True)
-        try:
-            for rec in _in_completion_order(executor, _run_task, todo):
+        dask_ex = _as_dask(executor)
+        if executor is None and todo:
+            if "dask" in cfg["executor"]:
+                from .executors import DaskExecutor
+
+                dask_ex = owned.enter_context(DaskExecutor(cfg["executor"]["dask"]))
+            elif workers <= 1:
+                workers = int(cfg["executor"].get("workers", workers))
+        if dask_ex is not None:
+            if todo:
+                _preflight(dask_ex, cfg)
+            batches = _dask_batches(dask_ex, cfg, todo)
+        else:
+            if executor is None and workers > 1 and len(todo) > 1:
+                executor = cf.ProcessPoolExecutor(max_workers=int(workers),
+                                                  initializer=_worker_init)
+                owned.callback(executor.shutdown, wait=True, cancel_futures=True)
+            batches = ([r] for r in _in_completion_order(executor, _run_task, todo))
+        bar = owned.enter_context(tqdm(
+            total=len(tasks), initial=len(tasks) - len(todo), file=sys.stderr,
+            disable=not progress, desc=cfg["name"], unit="pair", dynamic_ncols=True))
+        solves = _Eigensolves()
+        for recs in batches:
+            fresh = []
+            for rec in recs:
                 if "error" in rec:
                     failed.append(rec)
                     tqdm.write(f"{rec['name']}: failed: {rec['error']}", file=sys.stderr)
@@ -868,21 +1126,46 @@ def run(
                                   lambda t, a=arrays: np.savez(t, **a))
                 if rec["key"] in by_key:  # an executor delivered a pair twice
                     continue
-                _append_line(path, rec)
                 by_key[rec["key"]] = rec
-                bar.update(1)
-                d = rec["direct"]
-                bar.set_postfix_str(f"{rec['name']} <0.25: {100 * d['under_0.25']:.0f}%")
-        finally:
-            bar.close()
-            if own_pool is not None:
-                own_pool.shutdown(wait=True, cancel_futures=True)
+                fresh.append(rec)
+                solves.add(rec)
+            if fresh:
+                _append_lines(path, fresh)
+                bar.update(len(fresh))
+                d = fresh[-1]["direct"]
+                bar.set_postfix_str(f"{fresh[-1]['name']} <0.25: {100 * d['under_0.25']:.0f}%"
+                                    + solves.postfix())
+        bar.close()
         results = [by_key[t.key] for t in tasks if t.key in by_key]
         if results:
             summarize_run(results, out, config=cfg)
+    if todo and progress:
+        print(solves.line(), file=sys.stderr)
     if failed:
         print(f"{len(failed)} of {len(tasks)} pairs failed (re-run to retry)", file=sys.stderr)
     return results
+
+
+class _Eigensolves:
+    """Eigensolves of a run, from its records: in pair tasks, and in shape tasks (Dask runs;
+    each distinct shape-task result counted once)."""
+
+    def __init__(self) -> None:
+        self.in_pairs = 0
+        self.shapes: dict[str, bool] = {}  # shape task result id -> it ran an eigensolve
+
+    def add(self, rec: Mapping[str, Any]) -> None:
+        self.in_pairs += int(rec.get("eigensolves", 0))
+        for meta in rec.get("shapes") or ():
+            self.shapes[meta["id"]] = bool(meta["computed"])
+
+    def postfix(self) -> str:
+        return f", {self.in_pairs + sum(self.shapes.values())} eigensolves"
+
+    def line(self) -> str:
+        n = sum(self.shapes.values())
+        return (f"eigensolves this run: {n + self.in_pairs} ({n} in {len(self.shapes)} shape "
+                f"tasks, {self.in_pairs} in pair tasks)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -1059,7 +1342,7 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
     color_transfer = getattr(viz, "color_transfer", None)
     if color_transfer is None:
         return
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"])  # meshes only: no eigensolve here
     index = {n: i for i, n in enumerate(pc.names)}
     for rec in results[: int(cfg["pictures"])]:
         png = out / "pictures" / f"{rec['name']}.png"
@@ -1081,15 +1364,23 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
 # --------------------------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------------------------
-def main(argv: list[str] | None = None) -> int:
-    """Command line: ``evaluate CONFIG [--workers N] [--limit N] [--output DIR]
-    [--no-progress]``.
+_DASK_HELP = ("run on Dask distributed: 'local' or 'local:N' (a LocalCluster of N worker "
+              "processes, one thread each, on this machine) or a scheduler address "
+              "tcp://HOST:PORT (pip install 'torchheat[dask]'; README: running on a cluster)")
 
-    Returns 0 on success, 1 if some pairs failed, 2 on a configuration error.
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``evaluate CONFIG [--workers N | --dask ADDRESS] [--limit N]
+    [--output DIR] [--no-progress]``.
+
+    Returns 0 on success, 1 if some pairs failed, 2 on a configuration error (or an executor
+    that cannot run: no scheduler at the address, dask not installed, ...).
 
     Examples
     --------
     >>> main(["configs/smoke.yaml", "--no-progress"])  # doctest: +SKIP
+    0
+    >>> main(["configs/smoke.yaml", "--dask", "local:2"])  # doctest: +SKIP
     0
     """
     ap = argparse.ArgumentParser(
@@ -1097,7 +1388,8 @@ def main(argv: list[str] | None = None) -> int:
         description="Batch evaluation of torchheat matching over a dataset (resumable).",
     )
     ap.add_argument("config", help="YAML run configuration (see configs/)")
-    ap.add_argument("--workers", type=int, default=1, help="local worker processes")
+    ap.add_argument("--workers", type=int, default=None, help="local worker processes")
+    ap.add_argument("--dask", metavar="ADDRESS", default=None, help=_DASK_HELP)
     ap.add_argument("--limit", type=int, default=None, help="only the first N pairs")
     ap.add_argument("--output", default=None, help="output folder (default out/<name>)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -1111,11 +1403,10 @@ def main(argv: list[str] | None = None) -> int:
             cfg["limit"] = args.limit
         if args.output is not None:
             cfg["output"] = args.output
-        if args.workers < 1:
-            raise ConfigError("--workers must be >= 1")
+        cfg["executor"] = _executor_args(cfg["executor"], args.workers, args.dask)
         t0 = time.perf_counter()
-        results = run(cfg, workers=args.workers, progress=not args.no_progress)
-    except (ConfigError, FileNotFoundError, RuntimeError) as exc:
+        results = run(cfg, progress=not args.no_progress)
+    except (ConfigError, FileNotFoundError, RuntimeError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if not results:
@@ -1130,3 +1421,123 @@ def main(argv: list[str] | None = None) -> int:
           f"-> {cfg['output']}/summary.md")
     n_tasks = len(_tasks(cfg))
     return 0 if len(results) == n_tasks else 1
+
+
+def _executor_args(spec: Mapping[str, Any], workers: int | None,
+                   dask: str | None) -> dict[str, Any]:
+    """The executor of a run: ``--dask`` or ``--workers`` override the config's."""
+    if workers is not None and dask is not None:
+        raise ConfigError("give --workers (local processes) or --dask (a Dask cluster), "
+                          "not both")
+    if workers is not None:
+        if workers < 1:
+            raise ConfigError("--workers must be >= 1")
+        return {"workers": workers}
+    if dask is not None:
+        return _check_executor({"dask": dask}, "--dask")
+    return dict(spec)
+
+
+def preprocess(
+    source: str | os.PathLike,
+    cache: str | os.PathLike | None = None,
+    executor: Any = None,
+    k: int | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Fill the per-shape disk cache of a config's dataset or of a folder of meshes.
+
+    One task per shape (:meth:`torchheat.datasets.ShapeCollection.fill_cache`); afterwards a
+    run of the config with ``cache`` set, or a ``DataLoader`` over the collection with the
+    same :class:`~torchheat.datasets.Preprocess` and cache folder, runs no eigensolve.
+
+    Parameters
+    ----------
+    source : path-like
+        A run config (its dataset, its ``prepare`` options ``k``/``kind``/``boundary`` and
+        its ``cache`` folder) or a folder of meshes.
+    cache : path-like, optional
+        The cache folder (default: the config's ``cache``, else
+        :func:`torchheat.datasets.default_cache_dir`). On a cluster: shared storage.
+    executor : object with ``map``, optional
+        E.g. a :class:`torchheat.executors.DaskExecutor`; default in-process.
+    k : int, optional
+        Eigenpairs (default: the config's ``prepare.k``, else 100).
+    progress : bool
+        tqdm progress bar on stderr.
+
+    Returns
+    -------
+    list of dict
+        Per shape: ``name``, ``path``, ``computed``, ``seconds``, ``host``.
+
+    Examples
+    --------
+    >>> from torchheat.executors import DaskExecutor
+    >>> with DaskExecutor("tcp://scheduler:8786") as ex:  # doctest: +SKIP
+    ...     done = preprocess("configs/tosca5k.yaml", cache="/shared/cache", executor=ex)
+    """
+    from . import datasets
+
+    src = Path(source)
+    if src.is_dir():
+        prep: dict[str, Any] = {} if k is None else {"k": int(k)}
+        cache_dir = str(cache or datasets.default_cache_dir())
+        shapes = datasets.folder(src, preprocess=_preprocess_of(prep), cache_dir=cache_dir)
+    else:
+        cfg = load_config(src)
+        prep = dict(cfg["prepare"], **({} if k is None else {"k": int(k)}))
+        cache_dir = str(cache or cfg["cache"] or datasets.default_cache_dir())
+        shapes = _load_dataset(cfg["dataset"], cfg["dataset_args"], cache_dir, prep).shapes
+    return shapes.fill_cache(executor, progress=progress)
+
+
+def preprocess_main(argv: list[str] | None = None) -> int:
+    """Command line: ``preprocess SOURCE [--cache DIR] [--k K] [--workers N | --dask
+    ADDRESS] [--no-progress]`` (see :func:`preprocess`).
+
+    Returns 0 on success, 2 on an error (one line on stderr).
+
+    Examples
+    --------
+    >>> preprocess_main(["configs/tosca5k.yaml", "--dask", "local:2"])  # doctest: +SKIP
+    0
+    """
+    ap = argparse.ArgumentParser(
+        prog="torchheat preprocess",
+        description="Compute the per-shape preprocessing (eigenpairs, HKS) of a config's "
+                    "dataset or of a folder of meshes into the disk cache, one task per "
+                    "shape; later runs and DataLoaders read it from there.")
+    ap.add_argument("source", help="a YAML run configuration or a folder of meshes")
+    ap.add_argument("--cache", default=None, metavar="DIR",
+                    help="cache folder (default: the config's cache, else $TORCHHEAT_CACHE or "
+                         "~/.cache/torchheat); on a cluster, storage every worker sees")
+    ap.add_argument("--k", type=int, default=None, help="eigenpairs (default: the config's "
+                    "prepare.k, else 100)")
+    ap.add_argument("--workers", type=int, default=None, help="local worker processes")
+    ap.add_argument("--dask", metavar="ADDRESS", default=None, help=_DASK_HELP)
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore", message="Sparse", category=UserWarning)
+    try:
+        spec = _executor_args({}, args.workers, args.dask)
+        with contextlib.ExitStack() as owned:
+            executor = None
+            if "dask" in spec:
+                from .executors import DaskExecutor
+
+                executor = owned.enter_context(DaskExecutor(spec["dask"]))
+            elif spec.get("workers", 1) > 1:
+                executor = owned.enter_context(cf.ProcessPoolExecutor(
+                    max_workers=spec["workers"], initializer=_worker_init))
+            t0 = time.perf_counter()
+            done = preprocess(args.source, args.cache, executor, args.k,
+                              progress=not args.no_progress)
+    except (ConfigError, FileNotFoundError, RuntimeError, ImportError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    computed = [d for d in done if d["computed"]]
+    where = Path(done[0]["path"]).parent if done else args.cache
+    print(f"{len(done)} shapes: {len(computed)} computed, {len(done) - len(computed)} already "
+          f"cached; wall {time.perf_counter() - t0:.0f} s -> {where}")
+    return 0

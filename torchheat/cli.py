@@ -1,4 +1,4 @@
-"""Command line interface: ``torchheat match | symmetry | demo | evaluate``.
+"""Command line interface: ``torchheat match | symmetry | demo | evaluate | preprocess``.
 
 Every command writes its outputs atomically (a temporary file in the destination directory,
 then ``os.replace``) and only after all computations succeeded, so a failed run leaves no
@@ -597,15 +597,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_evaluate(rest: list[str]) -> int:
+def _cmd_batch(command: str, rest: list[str]) -> int:
+    """``evaluate`` / ``preprocess``: parsed and run by :mod:`torchheat.batch`."""
     try:
         from . import batch
     except ModuleNotFoundError as exc:
         if exc.name not in ("torchheat.batch",):
             raise
-        raise CLIError("the evaluate command needs torchheat.batch, which is not available "
+        raise CLIError(f"the {command} command needs torchheat.batch, which is not available "
                        "in this installation") from exc
-    rc = batch.main(list(rest))
+    rc = (batch.main if command == "evaluate" else batch.preprocess_main)(list(rest))
     return 0 if rc is None else int(rc)
 
 
@@ -681,7 +682,8 @@ def build_parser() -> argparse.ArgumentParser:
                "  torchheat match cat0.off cat1.off -o cat0_cat1.txt --png cat.png\n"
                "  torchheat symmetry cat0.off -o cat0_sym.txt\n"
                "  torchheat demo --out out\n"
-               "  torchheat evaluate configs/tosca.yaml --workers 2\n"
+               "  torchheat evaluate configs/tosca5k.yaml --workers 2\n"
+               "  torchheat evaluate configs/tosca5k.yaml --dask local:2\n"
                "Run 'torchheat COMMAND --help' for the options of a command.",
     )
     parser.add_argument("--version", action="version", version=f"{PROG} {_version()}")
@@ -782,7 +784,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="batch evaluation from a config file (torchheat.batch)",
         description="Run a batch evaluation described by CONFIG; all arguments are passed to "
                     "torchheat.batch (see 'torchheat evaluate --help').",
-        epilog="example:\n  torchheat evaluate configs/tosca.yaml --workers 2",
+        epilog="examples:\n  torchheat evaluate configs/tosca5k.yaml --workers 2\n"
+               "  torchheat evaluate configs/tosca5k.yaml --dask local:2\n"
+               "  torchheat evaluate configs/tosca5k.yaml --dask tcp://scheduler:8786",
+    )
+    sub.add_parser(
+        "preprocess", formatter_class=_Formatter, add_help=False,
+        help="fill the per-shape disk cache of a config's dataset or a folder of meshes",
+        description="Compute every shape's eigenpairs into the disk cache, one task per shape "
+                    "(locally or on Dask); all arguments are passed to torchheat.batch (see "
+                    "'torchheat preprocess --help').",
+        epilog="example:\n  torchheat preprocess configs/tosca5k.yaml --cache /shared/cache "
+               "--dask local:2",
     )
     return parser
 
@@ -832,9 +845,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     with warnings.catch_warnings():
         try:
-            if argv and argv[0] == "evaluate":  # torchheat.batch words its own warnings
+            if argv and argv[0] in _BATCH:  # torchheat.batch words its own warnings
                 warnings.showwarning = _showwarning
-                return _cmd_evaluate(argv[1:])
+                return _cmd_batch(argv[0], argv[1:])
             warnings.showwarning = _show_own_warning
             args = build_parser().parse_args(argv)
             return int(args.func(args))
@@ -859,6 +872,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 _FAST_EXIT = ("match", "symmetry", "demo")
+_BATCH = ("evaluate", "preprocess")
 
 
 def run() -> None:

@@ -41,7 +41,9 @@ import hashlib
 import json
 import os
 import re
+import sys
 import tempfile
+import time
 import warnings
 import zipfile
 from collections.abc import Callable, Sequence
@@ -53,6 +55,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .eigen import DEFAULT_EIGENPAIRS
 from .heat import HeatKernel
 from .mesh import Mesh, load_mesh
 
@@ -60,6 +63,7 @@ __all__ = [
     "CACHE_VERSION",
     "Barycentric",
     "BarycentricGT",
+    "CacheJob",
     "Pair",
     "PairCollection",
     "Preprocess",
@@ -72,7 +76,9 @@ __all__ = [
     "data_root",
     "default_cache_dir",
     "file_sha256",
+    "fill_cache_entry",
     "folder",
+    "host_id",
     "kids",
     "landmarks",
     "pairs_from_list",
@@ -195,7 +201,9 @@ class Preprocess:
         tuple of floats. Note that ``None`` and the same values spelled out give different
         cache keys (the results are identical).
     k : int
-        Number of eigenpairs (clipped to ``n - 1`` on tiny meshes, as in :class:`HeatKernel`).
+        Number of eigenpairs (clipped to ``n - 1`` on tiny meshes, as in :class:`HeatKernel`);
+        default :data:`~torchheat.eigen.DEFAULT_EIGENPAIRS` (100), what :func:`torchheat.match`
+        uses, so that ``match(pair)`` reads its eigenpairs from the cache.
     kind : {"cotan", "fem", "robust"}
         Laplacian discretisation (:func:`torchheat.laplacian`).
     boundary : {"neumann", "dirichlet"}
@@ -215,7 +223,7 @@ class Preprocess:
     """
 
     times: tuple[float, ...] | None = None
-    k: int = 40
+    k: int = DEFAULT_EIGENPAIRS
     kind: str = "cotan"
     boundary: str = "neumann"
 
@@ -443,6 +451,90 @@ class ShapeCollection(Dataset):
         stem = re.sub(r"[^A-Za-z0-9_.-]", "_", self.names[i])[:64]
         return self.cache_dir / f"{stem}.{digest[:32]}.npz"
 
+    def is_cached(self, i: int | str) -> bool:
+        """Whether shape ``i`` has a valid cache entry (for the current :attr:`preprocess`),
+        i.e. ``self[i]`` runs no eigensolve. Reads the file and the entry's metadata only.
+
+        Examples
+        --------
+        >>> ds = ShapeCollection(["cat0.off"], preprocess=Preprocess())  # doctest: +SKIP
+        >>> ds.is_cached(0)  # doctest: +SKIP
+        False
+        """
+        i = self.index(i)
+        sha = file_sha256(self.paths[i])
+        cpath = self.cache_path(i, sha)
+        try:
+            with np.load(cpath, allow_pickle=False) as z:
+                return str(z["meta"]) == self._meta(sha)
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile):
+            return False
+
+    def cache_job(self, i: int | str) -> CacheJob:
+        """A small picklable description of shape ``i``'s cache entry, for
+        :func:`fill_cache_entry` on another process or machine."""
+        if self.preprocess is None:
+            raise ValueError("this collection has no preprocess, hence no cache")
+        i = self.index(i)
+        return CacheJob(str(self.paths[i]), self.names[i], self.classes[i], self.preprocess,
+                        str(self.cache_dir))
+
+    def fill_cache(self, executor: Any = None, progress: bool = False) -> list[dict[str, Any]]:
+        """Compute every missing cache entry, one task per shape, e.g. on a Dask cluster.
+
+        Afterwards every ``self[i]`` (in a :class:`~torch.utils.data.DataLoader`, say) reads
+        its preprocessing from the cache. Entries already cached are checked, not recomputed.
+
+        Parameters
+        ----------
+        executor : object with ``map(fn, iterable)``, optional
+            Where the tasks run: in-process by default; a :class:`torchheat.executors.
+            DaskExecutor` spreads them over a cluster (the mesh files and :attr:`cache_dir`
+            must then be visible to every worker at the same paths: shared storage), a
+            :class:`concurrent.futures.ProcessPoolExecutor` over local processes.
+        progress : bool
+            tqdm progress bar on stderr.
+
+        Returns
+        -------
+        list of dict
+            One per shape, in collection order: ``name``, ``path`` (the cache entry),
+            ``computed`` (an eigensolve ran), ``seconds``, ``host`` (where it ran).
+
+        Raises
+        ------
+        RuntimeError
+            If entries written by the workers are not visible here (a cache folder that is
+            not shared between the workers and this process).
+
+        Examples
+        --------
+        >>> from torchheat.executors import DaskExecutor
+        >>> shapes = tosca_remeshed_5k(preprocess=Preprocess(), cache_dir="/shared/cache").shapes
+        ... # doctest: +SKIP
+        >>> with DaskExecutor("tcp://scheduler:8786") as ex:  # doctest: +SKIP
+        ...     done = shapes.fill_cache(ex, progress=True)
+        >>> sum(d["computed"] for d in done)  # eigensolves run  # doctest: +SKIP
+        76
+        """
+        from tqdm import tqdm
+
+        jobs = [self.cache_job(i) for i in range(len(self))]
+        mapper = map if executor is None else executor.map
+        out: dict[str, dict[str, Any]] = {}
+        with tqdm(total=len(jobs), disable=not progress, desc="preprocess", unit="shape",
+                  file=sys.stderr, dynamic_ncols=True) as bar:
+            for rec in mapper(fill_cache_entry, jobs):
+                out[rec["name"]] = rec
+                bar.update(1)
+        missing = [n for i, n in enumerate(self.names) if not self.is_cached(i)]
+        if missing:
+            raise RuntimeError(
+                f"{len(missing)} cache entries computed by the workers are not visible in "
+                f"{self.cache_dir} here (e.g. {missing[0]}): the cache folder must be on "
+                "storage shared by the workers and this process, at the same path")
+        return [out[n] for n in self.names]
+
     def __getitem__(self, i: int | str) -> Shape:
         i = self.index(i)
         path = self.paths[i]
@@ -513,6 +605,62 @@ class ShapeCollection(Dataset):
             except OSError:
                 pass
             raise
+
+
+@dataclass(frozen=True)
+class CacheJob:
+    """One shape's cache entry to compute (:meth:`ShapeCollection.cache_job`): picklable and
+    small (paths and parameters, no arrays), so it can be shipped to a cluster worker."""
+
+    path: str
+    name: str
+    cls: str
+    preprocess: Preprocess
+    cache_dir: str
+
+    def collection(self) -> ShapeCollection:
+        """A one-shape :class:`ShapeCollection` holding this shape."""
+        return ShapeCollection([self.path], classes=[self.cls], preprocess=self.preprocess,
+                               cache_dir=self.cache_dir, names=[self.name])
+
+
+def fill_cache_entry(job: CacheJob) -> dict[str, Any]:
+    """Make sure one shape's cache entry exists (compute and write it if not): the task of
+    :meth:`ShapeCollection.fill_cache`.
+
+    Returns
+    -------
+    dict
+        ``name``, ``path`` (the entry), ``computed`` (an eigensolve ran), ``seconds``,
+        ``host`` (``hostname:pid``).
+
+    Examples
+    --------
+    >>> job = ShapeCollection(["cat0.off"], preprocess=Preprocess()).cache_job(0)
+    ... # doctest: +SKIP
+    >>> fill_cache_entry(job)["computed"]  # doctest: +SKIP
+    True
+    """
+    t0 = time.perf_counter()
+    sc = job.collection()
+    computed = not sc.is_cached(0)
+    if computed:
+        sc[0]  # noqa: B018 - computes and writes the entry
+    return {"name": job.name, "path": str(sc.cache_path(0)), "computed": computed,
+            "seconds": time.perf_counter() - t0, "host": host_id()}
+
+
+def host_id() -> str:
+    """``hostname:pid`` of this process (where a task ran).
+
+    Examples
+    --------
+    >>> host_id().count(":")
+    1
+    """
+    import socket
+
+    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -886,6 +1034,8 @@ def _within_class_pairs(shapes: ShapeCollection, mode: str) -> list[tuple[int, i
     for idx in by_cls.values():
         if mode == "all":
             out += [(a, b) for j, a in enumerate(idx) for b in idx[j + 1 :]]
+        elif mode == "ordered":
+            out += [(a, b) for a in idx for b in idx if a != b]
         elif mode == "first":
             out += [(idx[0], b) for b in idx[1:]]
         else:
@@ -941,9 +1091,10 @@ def tosca_remeshed_5k(
     ----------
     root : path-like, optional
         Data folder (see :func:`data_root`) or the ``tosca_remeshed_5k`` folder itself.
-    pairs : "test", "all" or sequence of (name, name)
+    pairs : "test", "all", "ordered" or sequence of (name, name)
         ``"test"``: the 284 pairs of ``test_pairs.txt`` (the paper's protocol); ``"all"``: every
-        within-class pair ``(i, j)``, ``i < j`` in natural name order (414 pairs).
+        within-class pair ``(i, j)``, ``i < j`` in natural name order (414 pairs);
+        ``"ordered"``: both directions of every within-class pair (828 pairs).
     classes : sequence of str, optional
         Keep only these classes (e.g. ``["cat", "wolf"]``).
     **kw
@@ -1052,10 +1203,10 @@ def tosca_hires(
         Data folder (see :func:`data_root`) or the ``tosca_hires`` folder itself.
     classes : sequence of str, optional
         Keep only these classes (cat, centaur, david, dog, horse, victoria, wolf).
-    pairs : "first", "all" or sequence of (name, name)
+    pairs : "first", "all", "ordered" or sequence of (name, name)
         ``"first"`` (default): the first shape of each class (natural order: ``cat0``, ...)
         against every other shape of the class (34 pairs for all classes); ``"all"``: every
-        within-class pair ``i < j``.
+        within-class pair ``i < j``; ``"ordered"``: both directions of each.
     **kw
         ``preprocess``, ``cache_dir``.
 

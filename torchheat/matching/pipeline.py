@@ -10,6 +10,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -39,7 +40,7 @@ from .partial import (
     partial_times,
     partial_zoomout,
 )
-from .prepared import _DESC_LOCK, PreparedShape, _as_prepared, _fps
+from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
 from .quality import SUSPECT_BELOW, MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
@@ -78,8 +79,8 @@ class _Options:
 
 
 def match(
-    source: Mesh | PreparedShape,
-    target: Mesh | PreparedShape,
+    source: Mesh | PreparedShape | CachedShape | Any,
+    target: Mesh | PreparedShape | CachedShape | None = None,
     *,
     landmark: int | tuple[int, int] | None = None,
     landmarks: int = 1,
@@ -118,8 +119,11 @@ def match(
 
     Parameters
     ----------
-    source, target : Mesh or PreparedShape
-        Shapes M (n vertices) and N (m vertices).
+    source, target : Mesh, PreparedShape or torchheat.datasets.Shape
+        Shapes M (n vertices) and N (m vertices). A dataset shape's cached eigenpairs are
+        used (see :func:`prepare`): with a :class:`~torchheat.datasets.Preprocess`, no
+        eigensolve runs. A :class:`torchheat.datasets.Pair` may be passed as ``source`` alone
+        (``match(pair)`` is ``match(pair.source, pair.target)``).
     landmark : int or (int, int), optional
         Source landmark ``p`` (default: the strongest feature point), or a known pair
         ``(p, q)`` which skips the landmark search. Indices of the meshes as given: for a mesh
@@ -267,7 +271,15 @@ def match(
     >>> corr = match(M, M)
     >>> float((corr.map == torch.arange(M.n_vertices)).float().mean())
     1.0
+
+    Pairs of a dataset whose eigenpairs are cached on disk (e.g. in a ``DataLoader`` loop):
+
+    >>> from torchheat.datasets import Preprocess, tosca_remeshed_5k
+    >>> pairs = tosca_remeshed_5k(pairs="test", preprocess=Preprocess())  # doctest: +SKIP
+    >>> corr = match(pairs[0])  # doctest: +SKIP
     """
+    if target is None:
+        source, target = _pair_shapes(source)
     if partial and partial_scale == "auto" and method == "refine":
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
         return _partial_auto(source, target, kw)
@@ -444,6 +456,14 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
                             if c is not corr)
     tm["total"] = time.perf_counter() - t0
     return corr
+
+
+def _pair_shapes(pair: Any) -> tuple[Any, Any]:
+    """``(pair.source, pair.target)`` of a dataset pair (:class:`torchheat.datasets.Pair`)."""
+    if hasattr(pair, "source") and hasattr(pair, "target"):
+        return pair.source, pair.target
+    raise TypeError(f"match needs a target, or a dataset Pair as its only shape; got one "
+                    f"{type(pair).__name__}")
 
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,

@@ -8,6 +8,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -22,7 +23,7 @@ from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh, MeshError
 
-__all__ = ["PreparedShape", "prepare"]
+__all__ = ["CachedShape", "PreparedShape", "is_cached_shape", "prepare"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -96,16 +97,42 @@ def _vertex_normals(mesh: Mesh) -> np.ndarray:
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
+class CachedShape(Protocol):
+    """What :func:`prepare` reads from a dataset shape (:class:`torchheat.datasets.Shape`):
+    the mesh, the cached preprocessing (``data``, None when there is none) and a heat kernel
+    rebuilt from it. Declared here so that matching need not import ``datasets``."""
+
+    mesh: Mesh
+    data: dict | None
+
+    def heat_kernel(self, **kw: Any) -> HeatKernel: ...
+
+
+def is_cached_shape(x: Any) -> bool:
+    """Whether ``x`` is a dataset shape (:class:`CachedShape`) rather than a mesh.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> from torchheat import Mesh
+    >>> s = trimesh.creation.icosphere(1)
+    >>> is_cached_shape(Mesh(s.vertices, s.faces))
+    False
+    """
+    return (not isinstance(x, (Mesh, PreparedShape)) and isinstance(getattr(x, "mesh", None), Mesh)
+            and hasattr(x, "data") and callable(getattr(x, "heat_kernel", None)))
+
+
 def prepare(
-    mesh: Mesh,
+    mesh: Mesh | CachedShape,
     times: str | Sequence[float] | torch.Tensor | None = "adaptive",
     *,
     feature_time: float = 0.05,
     max_features: int = 50,
-    k: int = DEFAULT_EIGENPAIRS,
+    k: int | None = None,
     rtol: float = 1e-6,
-    kind: str = "cotan",
-    boundary: str = "neumann",
+    kind: str | None = None,
+    boundary: str | None = None,
     hk: HeatKernel | None = None,
     eigenpairs: tuple | None = None,
     num_threads: int | None = None,
@@ -114,7 +141,11 @@ def prepare(
 
     Parameters
     ----------
-    mesh : Mesh
+    mesh : Mesh or torchheat.datasets.Shape
+        A mesh, or a shape of a dataset (:class:`torchheat.datasets.ShapeCollection`): its
+        cached eigenpairs (``shape.data``, from the collection's :class:`~torchheat.datasets.
+        Preprocess` and disk cache) are used, so no eigensolve runs; a shape without cached
+        data is prepared from its mesh.
     times : "adaptive", "paper", None or sequence of float
         ``"adaptive"`` (default): 10 log-spaced samples in ``[4 ln10 / lambda_k,
         4 ln10 / lambda_1]`` from the shape's own spectrum, computed from the eigenbasis
@@ -125,10 +156,14 @@ def prepare(
         Time of the HKS whose 2-ring maxima are the feature points.
     max_features : int
         Cap on the number of feature points (strongest first).
-    k : int
-        Eigenpairs of the heat kernel's eigenbasis (default 100).
-    rtol, kind, boundary, num_threads
+    k : int, optional
+        Eigenpairs of the heat kernel's eigenbasis (default 100; for a dataset shape with
+        cached data: the cached ones; fewer: the first ``k`` of them, more: a new eigensolve).
+    rtol, num_threads
         Passed to :class:`HeatKernel`.
+    kind, boundary : str, optional
+        Passed to :class:`HeatKernel` (default ``"cotan"``, ``"neumann"``; for a dataset
+        shape: those of its cached data; others than those mean a new eigensolve).
     hk : HeatKernel, optional
         A ready solver (e.g. rebuilt from a disk cache); ``times`` is then ignored.
     eigenpairs : (lam, phi), optional
@@ -157,10 +192,27 @@ def prepare(
     Traceback (most recent call last):
     ...
     torchheat.meshio.MeshError: ico2: 162 vertices, too few to match: ... at least 200 vertices; ...
+
+    A shape of a dataset with a :class:`~torchheat.datasets.Preprocess` (eigenpairs read from
+    the disk cache, no eigensolve):
+
+    >>> from torchheat.datasets import Preprocess, tosca_remeshed_5k
+    >>> pair = tosca_remeshed_5k(preprocess=Preprocess())[0]  # doctest: +SKIP
+    >>> prepare(pair.source).hk.k  # doctest: +SKIP
+    100
     """
-    _check_matchable(mesh, k if hk is None else hk.k)
     t0 = time.perf_counter()
+    if is_cached_shape(mesh):
+        shape, mesh = mesh, mesh.mesh
+        if hk is None and eigenpairs is None and shape.data is not None:
+            hk = _cached_heat_kernel(shape, times, k, rtol, kind, boundary, num_threads)
+    elif not isinstance(mesh, Mesh):
+        raise TypeError(f"expected a Mesh or a dataset Shape, got {type(mesh).__name__}")
+    k = DEFAULT_EIGENPAIRS if k is None else k
+    _check_matchable(mesh, k if hk is None else hk.k)
     if hk is None:
+        kind = "cotan" if kind is None else kind
+        boundary = "neumann" if boundary is None else boundary
         if isinstance(times, str):
             if times not in ("adaptive", "paper"):
                 raise ValueError(f"unknown times {times!r}; use 'adaptive', 'paper' or a list")
@@ -183,6 +235,25 @@ def prepare(
     return PreparedShape(mesh, hk, feats, normals,
                          {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
                          own_times=hk.times.clone())
+
+
+def _cached_heat_kernel(shape: CachedShape, times: Any, k: int | None, rtol: float,
+                        kind: str | None, boundary: str | None,
+                        num_threads: int | None) -> HeatKernel:
+    """The heat kernel :func:`prepare` would build, from a dataset shape's cached eigenpairs
+    (the same eigenpairs, so the same prepared shape)."""
+    if isinstance(times, str) and times not in ("adaptive", "paper"):
+        raise ValueError(f"unknown times {times!r}; use 'adaptive', 'paper' or a list")
+    adaptive = isinstance(times, str) and times == "adaptive"
+    kw: dict[str, Any] = {"times": None if isinstance(times, str) else times, "rtol": rtol,
+                          "method": "spectral" if adaptive else "auto",
+                          "num_threads": num_threads}
+    kw.update({name: v for name, v in (("k", k), ("kind", kind), ("boundary", boundary))
+               if v is not None})
+    hk = shape.heat_kernel(**kw)
+    if adaptive:
+        hk.set_times(hk.adaptive_times())
+    return hk
 
 
 def _check_matchable(mesh: Mesh, k: int, remedy: str | None = None) -> None:
@@ -223,9 +294,9 @@ def _check_matchable(mesh: Mesh, k: int, remedy: str | None = None) -> None:
 def _as_prepared(x, **kw) -> PreparedShape:
     if isinstance(x, PreparedShape):
         return x
-    if isinstance(x, Mesh):
+    if isinstance(x, Mesh) or is_cached_shape(x):
         return prepare(x, **kw)
-    raise TypeError(f"expected a Mesh or PreparedShape, got {type(x).__name__}")
+    raise TypeError(f"expected a Mesh, PreparedShape or dataset Shape, got {type(x).__name__}")
 
 
 # ------------------------------------------------------------------------------------------

@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from ..mesh import Mesh
 from .pipeline import match
-from .prepared import PreparedShape, _as_prepared
+from .prepared import CachedShape, PreparedShape, _as_prepared
 from .quality import map_quality
 from .result import Correspondence, _numbering
 
@@ -13,7 +15,7 @@ __all__ = ["symmetry"]
 
 
 def symmetry(
-    mesh: Mesh | PreparedShape, **options
+    mesh: Mesh | PreparedShape | CachedShape, **options: Any
 ) -> Correspondence:
     """Intrinsic symmetry of a shape: the best orientation-reversing self-map.
 
@@ -23,7 +25,8 @@ def symmetry(
 
     Parameters
     ----------
-    mesh : Mesh or PreparedShape
+    mesh : Mesh, PreparedShape or torchheat.datasets.Shape
+        A dataset shape's cached eigenpairs are used (see :func:`prepare`).
     **options
         Passed to :func:`match`.
 
