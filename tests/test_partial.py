@@ -122,8 +122,11 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     assert np.mean(err < 0.05) > 0.9, np.mean(err < 0.05)
     q = corr.quality
     assert not q.suspect and q.orientation > 0.5
-    # the piece's own times are the whole's divided by the area ratio (one scale)
-    assert not corr.info["timings"] == {}
+    # one scale: the ratio the piece's times are divided by is its true share of the area
+    info = corr.info["partial"]
+    assert info["ratio"] == pytest.approx(piece.area() / whole.area(), rel=1e-9)
+    assert set(info["quality"]) >= {"piece", "unit"}
+    assert max(info["quality"].values()) == pytest.approx(q.quality)  # the better map won
 
 
 def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece):

@@ -62,6 +62,8 @@ __all__ = [
 PARTIAL_MARGIN = 0.02
 #: Fewest vertices a partial shape must keep beyond the margin.
 _MIN_INTERIOR = 50
+#: Interior farthest-point samples prepared for a piece (every sample request is a prefix).
+_INTERIOR_SAMPLES = 2048
 #: Area ratio above which the "partial" source is taken to be as large as the target.
 _RATIO_MAX = 1.1
 
@@ -223,7 +225,7 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepe
     view.features = torch.as_tensor(keep, dtype=torch.int64)
     inner = np.flatnonzero(setup.interior)
     V, _ = src.mesh.numpy()
-    order = farthest_point_sampling(V[inner], min(inner.size, max(2048, 0)))
+    order = farthest_point_sampling(V[inner], min(inner.size, _INTERIOR_SAMPLES))
     view.__dict__["_fps_cache"] = torch.as_tensor(inner[order.numpy()], dtype=torch.int64)
     return view
 
