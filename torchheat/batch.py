@@ -1456,6 +1456,8 @@ def preprocess(
     from . import datasets
 
     src = Path(source)
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such config file or folder of meshes")
     if src.is_dir():
         prep: dict[str, Any] = {} if k is None else {"k": int(k)}
         cache_dir = str(cache or datasets.default_cache_dir())
