@@ -277,3 +277,13 @@ def test_missing_dask_gives_install_hint(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_distributed)
     with pytest.raises(ImportError, match=r"pip install 'torchheat\[dask\]'"):
         DaskExecutor("local:1")
+
+
+def test_scheduler_without_workers_fails_in_bounded_time():
+    with deadline(60), distributed.LocalCluster(n_workers=0, processes=False,
+                                                dashboard_address=":0") as empty:
+        t0 = time.monotonic()
+        with pytest.raises(ExecutorError, match="no Dask worker joined the scheduler at "
+                                                f"{empty.scheduler_address} within 2 s"):
+            DaskExecutor(empty.scheduler_address, workers_timeout=2)
+        assert time.monotonic() - t0 < 20

@@ -224,7 +224,7 @@ class DaskExecutor:
         kind, where = parse_dask_address(address)
         if kind == "local":
             kw = {"n_workers": int(where), "threads_per_worker": 1, "processes": True,
-                  "dashboard_address": None}
+                  "dashboard_address": ":0"}  # no fixed port
             kw.update(cluster_kwargs)
             self.cluster = distributed.LocalCluster(**kw)
             self.client = distributed.Client(self.cluster, timeout=timeout)
