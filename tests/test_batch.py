@@ -248,3 +248,17 @@ def test_roles_share_one_eigensolve_but_not_their_times():
     assert torch.equal(src.hk.times, t_src)
     assert batch._prepared(shape, "source", {}, {"k": 30}) is src  # memoised per role
     batch.clear_caches()
+
+
+def test_preprocess_command_fills_the_cache_once(tmp_path, capsys):
+    from conftest import deformed_spheres
+
+    deformed_spheres(tmp_path / "m", n=3, subdivisions=2)
+    argv = [str(tmp_path / "m"), "--cache", str(tmp_path / "c"), "--k", "8", "--no-progress"]
+    assert batch.preprocess_main(argv) == 0
+    assert "3 shapes: 3 computed, 0 already cached" in capsys.readouterr().out
+    assert len(list((tmp_path / "c").glob("*.npz"))) == 3
+    assert batch.preprocess_main(argv) == 0
+    assert "3 shapes: 0 computed, 3 already cached" in capsys.readouterr().out
+    assert batch.preprocess_main([str(tmp_path / "nothere")]) == 2
+    assert "no such config file or folder of meshes" in capsys.readouterr().err

@@ -277,3 +277,27 @@ def test_missing_dask_gives_install_hint(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_distributed)
     with pytest.raises(ImportError, match=r"pip install 'torchheat\[dask\]'"):
         DaskExecutor("local:1")
+
+
+def test_scheduler_without_workers_fails_in_bounded_time():
+    with deadline(60), distributed.LocalCluster(n_workers=0, processes=False,
+                                                dashboard_address=":0") as empty:
+        t0 = time.monotonic()
+        with pytest.raises(ExecutorError, match="no Dask worker joined the scheduler at "
+                                                f"{empty.scheduler_address} within 2 s"):
+            DaskExecutor(empty.scheduler_address, workers_timeout=2)
+        assert time.monotonic() - t0 < 20
+
+
+def test_a_pair_that_kills_its_workers_becomes_an_error_record():
+    from types import SimpleNamespace
+
+    from distributed.scheduler import KilledWorker
+
+    worker = SimpleNamespace(address="tcp://10.0.0.5:4711")
+    task = SimpleNamespace(key="a-b#123", name="a-b")
+    rec = batch._error_record(task, KilledWorker("pair-a-b-1234", worker, 3))
+    assert rec["key"] == "a-b#123" and rec["name"] == "a-b"
+    assert rec["error"].startswith("distributed.scheduler.KilledWorker: Attempted to run task")
+    assert "tcp://10.0.0.5:4711" in rec["error"] and "\n" not in rec["error"]
+    assert rec["error"].endswith("(killed, or out of memory: see the workers' logs)")

@@ -18,27 +18,22 @@ Design
 * :func:`evaluate_pair` is one pure per-pair task (match, then evaluation) returning a JSON-able
   dict. :func:`run` maps a picklable wrapper of it over the pairs with an **executor**: the
   built-in ``map`` in-process by default, a :class:`concurrent.futures.ProcessPoolExecutor`
-  for ``workers > 1`` (torch set to one thread per worker), or any object with a
-  ``map(fn, iterable)`` method — e.g. a two-line Dask adapter::
-
-      from dask.distributed import Client, as_completed
-
-      class DaskExecutor:
-          def __init__(self, client):
-              self.client = client
-
-          def map(self, fn, iterable):
-              futures = self.client.map(fn, list(iterable), pure=False)
-              for fut in as_completed(futures):   # records in completion order
-                  yield fut.result()
-
-      run("configs/tosca5k.yaml", executor=DaskExecutor(Client("scheduler:8786")))
-
-  The tasks shipped to the executor are tiny (dataset name, arguments, pair index, options);
+  for ``workers > 1`` (torch set to one thread per worker), a
+  :class:`torchheat.executors.DaskExecutor` (``--dask local:N`` or ``tcp://HOST:PORT``,
+  ``executor: {dask: ...}``), or any object with a ``map(fn, iterable)`` method.
+  The tasks shipped to an executor are tiny (dataset name, arguments, pair index, options);
   each worker loads its pair from the data folder itself (which must be visible to it, e.g.
   through ``TORCHHEAT_DATA``). Records may arrive in any order: each carries its key.
+* **On Dask** each shape is a task of its own (:class:`ShapeTask`: its eigenbasis, once per
+  run) and each pair task depends on its two shapes' tasks, which hand it the eigenbases
+  through Dask's transfers or, with ``cache``, through the shared disk cache: an all-pairs run
+  does O(shapes) eigensolves. At most 4 pair tasks per worker thread are in flight; a worker
+  that dies has its tasks (and the eigenbases it held) run again elsewhere; a pair that fails
+  becomes an error record; workers that cannot see the data stop the run before it starts
+  (:func:`_dask_batches`, :meth:`~torchheat.executors.DaskExecutor.map_shared`).
 * **Resumable, crash-safe output**: every finished pair is appended as ONE line of
-  ``<output>/results.jsonl`` (``O_APPEND`` write of the whole line, then ``os.fsync``). On
+  ``<output>/results.jsonl`` by this process only (``O_APPEND`` write of the whole line —
+  of the lines of the records that finished together — then one ``os.fsync``). On
   start, a trailing partial line (a kill in the middle of a write) is cut off, and pairs whose
   key (pair name + hash of task and match/prepare options) is already in the file are skipped,
   so a run killed at any moment resumes without losing or duplicating a result. The other outputs
@@ -1480,6 +1475,8 @@ def preprocess(
     from . import datasets
 
     src = Path(source)
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such config file or folder of meshes")
     if src.is_dir():
         prep: dict[str, Any] = {} if k is None else {"k": int(k)}
         cache_dir = str(cache or datasets.default_cache_dir())

@@ -17,6 +17,17 @@ Cache
 * Writes are atomic (temporary file in the same directory, then :func:`os.replace`), so
   concurrent DataLoader workers may compute the same shape safely.
 
+Filling the cache on a cluster
+------------------------------
+:meth:`ShapeCollection.fill_cache` computes every missing entry as one task per shape on any
+executor with ``map`` — in-process, a process pool, or a :class:`torchheat.executors.
+DaskExecutor` (the mesh files and ``cache_dir`` must then be visible to every worker at the
+same paths) — and checks afterwards that the entries are visible here; ``torchheat preprocess
+CONFIG_OR_FOLDER --cache DIR --dask ADDRESS`` does the same from the command line. A later
+``DataLoader`` over the collection (same :class:`Preprocess`, same folder) then runs no
+eigensolve, and :func:`torchheat.match` / :func:`torchheat.prepare` take its shapes and pairs
+directly.
+
 Data loaders
 ------------
 :func:`tosca_remeshed_5k`, :func:`tosca_remeshed_5k_symmetry`, :func:`scape`,

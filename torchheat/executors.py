@@ -14,8 +14,9 @@ nothing else of torchheat.
 What the engine provides and torchheat relies on (see :mod:`torchheat.batch` for the rest):
 
 * a task whose worker process dies (killed, out of memory: the nanny restarts it) is run again
-  on a live worker; a task that kills ``distributed.scheduler.allowed-failures`` (default 3)
-  workers fails with ``KilledWorker`` instead of being retried for ever;
+  on a live worker; a task whose workers died more than ``distributed.scheduler.
+  allowed-failures`` (default 3) times fails with ``KilledWorker`` instead of being retried
+  for ever;
 * results held by a dead worker are recomputed from their tasks (lineage);
 * a dependency's result moves to the worker that runs the dependent task.
 
@@ -224,7 +225,7 @@ class DaskExecutor:
         kind, where = parse_dask_address(address)
         if kind == "local":
             kw = {"n_workers": int(where), "threads_per_worker": 1, "processes": True,
-                  "dashboard_address": None}
+                  "dashboard_address": ":0"}  # no fixed port
             kw.update(cluster_kwargs)
             self.cluster = distributed.LocalCluster(**kw)
             self.client = distributed.Client(self.cluster, timeout=timeout)
@@ -328,7 +329,7 @@ class DaskExecutor:
         list of (item, result, exception)
             Finished items, in completion order, in batches of those that finished together;
             ``exception`` is None or what ``fn`` or a shared input raised, or Dask's
-            ``KilledWorker`` when the item's worker died
+            ``KilledWorker`` when the item's workers died more than
             ``distributed.scheduler.allowed-failures`` times.
 
         Raises
