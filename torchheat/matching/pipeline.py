@@ -18,6 +18,7 @@ import torch
 from ..heat import threads
 from ..mesh import Mesh
 from .background import _Background
+from .fmap import descriptor_functional_map
 from .landmarks import (
     _ambiguity,
     _distinct,
@@ -76,6 +77,7 @@ class _Options:
     zoomout_k: int | None = None
     zoomout_hypotheses: int = 8
     partial_ratio: float | None = None  # area(source) / area(target) of a partial match
+    descriptor_seed: bool = True
 
 
 def match(
@@ -110,6 +112,7 @@ def match(
     zoomout_samples: int = 500,
     zoomout_k: int | None = None,
     zoomout_hypotheses: int = 8,
+    descriptor_seed: bool = True,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
     partial_scale: str = "auto",
@@ -373,7 +376,7 @@ def match(
                 refine_keep=refine_keep, orientation_samples=orientation_samples,
                 num_threads=num_threads, final_map=final_map, use_hks=use_hks, engine=engine,
                 zoomout=zoomout, zoomout_samples=zoomout_samples, zoomout_k=zoomout_k,
-                zoomout_hypotheses=zoomout_hypotheses,
+                zoomout_hypotheses=zoomout_hypotheses, descriptor_seed=descriptor_seed,
                 partial_ratio=None if part is None else part.ratio)
             out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
                           timings)
@@ -728,6 +731,11 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
             cands += _mirror_partners(src, tgt, rows, pos[samples], cands, opt, k_sel,
                                       targets, orient)
+        if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
+            t_d = time.perf_counter()
+            cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
+                                           targets, orient)
+            timings["descriptor_seed"] = time.perf_counter() - t_d
     w = opt.orientation_weight if opt.orientation else 0.0
 
     def score(r: dict, sign: float) -> float:
@@ -792,6 +800,35 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                         "energy": float("nan"), "orientation": float("nan"),
                         "zo_orientation": orient(zo.images)})
     return out
+
+
+_DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
+
+
+def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                          at_samples: torch.Tensor, cands: list[dict], k_sel: int,
+                          targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
+                          ) -> list[dict]:
+    """One more ZoomOut candidate that no landmark started: the functional map of the
+    shapes' wave kernel signatures with the orientation-preserving term
+    (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
+    ZoomOut from ``_DESCR_K`` to ``k_sel`` modes. Dropped when its images agree with an
+    existing candidate's (as in :func:`_distinct_hypotheses`)."""
+    phi_s, phi_t = _bases(src, tgt)
+    k = min(_DESCR_K, k_sel)
+    C = descriptor_functional_map(src, tgt, k=k)
+    _, j = spectral_map(phi_s, phi_t[targets], C, rows)
+    zo = zoomout(phi_s, phi_t, rows, targets[j], rows, k_start=k, k_end=k_sel,
+                 step=_ZO_STEP, targets=targets)
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    im = zo.images.numpy()
+    if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1) <= radius)
+           >= _ZO_SAME for o in cands):
+        return []
+    return [{"lms0": [], "g": zo.images[at_samples], "zo": zo, "energy": float("nan"),
+             "orientation": float("nan"), "zo_orientation": orient(zo.images),
+             "descriptor_seed": True}]
 
 
 def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,

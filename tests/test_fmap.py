@@ -1,0 +1,99 @@
+"""The descriptor functional map (torchheat.matching.fmap): its energy is minimised exactly,
+its operators are right on shapes whose answers are known, and its orientation term tells a
+shape's direct map from its reflection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import DATA, flat_grid, generic_sphere
+from scipy.optimize import fmin_l_bfgs_b
+from test_matching import mirror_mesh, mirror_permutation, moved_copy
+
+import torchheat
+from torchheat.matching import fmap
+from torchheat.matching.zoomout import spectral_map
+
+
+def test_the_quadratic_solve_is_the_energy_minimum():
+    V, F = generic_sphere(3)
+    W = V * np.array([1.2, 1.0, 0.85])
+    s = torchheat.prepare(torchheat.Mesh(V, F), k=40)
+    t = torchheat.prepare(torchheat.Mesh(W, F), k=40)
+    terms = fmap._terms(s, t, 12, 20, (1.0, 0.1, 1.0, 1.0))
+    C = fmap._solve_quadratic(*terms)
+    e0 = fmap._energy(C, *terms)
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # every direction goes up (quadratic: by the curvature, > 0)
+        D = rng.standard_normal(C.shape) * 1e-3
+        assert fmap._energy(C + D, *terms) > e0
+    # an independent optimiser (L-BFGS, finite-difference gradients) ends no lower
+    x, fv, _ = fmin_l_bfgs_b(lambda v: fmap._energy(v.reshape(C.shape), *terms),
+                             np.zeros(C.size), approx_grad=True, maxfun=200000)
+    assert e0 <= fv + 1e-12
+    assert fv < 1.05 * e0  # and it converged towards the same minimum
+
+
+def test_orientation_operator_of_coordinates_on_a_plane():
+    # f = x on a flat grid: n x grad f = y-axis, so <n x grad x, grad g> = dg/dy;
+    # g = y gives 1 everywhere: O[1, y] = area, O[1, x] = 0
+    V, F = flat_grid(10, 8, 1.0, 0.75)
+    x, y = V[:, :1], V[:, 1:2]
+    one = np.ones_like(x)
+    op = fmap.orientation_operators(V, F, np.hstack([one, x, y]), x)[0]
+    assert op[0, 2] == pytest.approx(0.75, rel=1e-9)
+    assert op[0, 1] == pytest.approx(0.0, abs=1e-12)
+    O_y = fmap.orientation_operators(V, F, np.hstack([one, x, y]), y)[0]
+    assert O_y[0, 1] == pytest.approx(-0.75, rel=1e-9)  # n x grad y = -x-axis
+
+
+def test_wks_is_invariant_to_renumbering_and_rigid_motion():
+    V, F = generic_sphere(3)
+    perm = np.random.default_rng(1).permutation(len(V))
+    inv = np.argsort(perm)
+    R = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3]
+    a = torchheat.prepare(torchheat.Mesh(V, F), k=30)
+    b = torchheat.prepare(torchheat.Mesh(V[perm] @ R.T * 2.0, inv[F]), k=30)
+    e = np.linspace(1.0, 4.0, 8)
+    wa = fmap.wave_kernel_signature(a.hk.eigenvalues, a.hk.eigenvectors, e, 0.3).numpy()
+    wb = fmap.wave_kernel_signature(b.hk.eigenvalues, b.hk.eigenvectors, e, 0.3).numpy()
+    np.testing.assert_allclose(wb, wa[perm], rtol=1e-6, atol=1e-9 * np.abs(wa).max())
+
+
+@pytest.mark.parametrize("w_orient", [1.0])
+def test_orientation_term_picks_the_direct_map_of_a_mirror_symmetric_shape(w_orient):
+    V, F = mirror_mesh(4)
+    refl = mirror_permutation(V)
+    perm = np.random.default_rng(2).permutation(len(V))
+    inv = np.argsort(perm)
+    src = torchheat.prepare(torchheat.Mesh(V, F), k=60)
+    tgt = torchheat.prepare(torchheat.Mesh(V[perm], inv[F]), k=60)  # same shape, renumbered
+    C = fmap.descriptor_functional_map(src, tgt, k=20, weights=(1.0, 0.1, 1.0, w_orient))
+    _, img = spectral_map(src.hk.eigenvectors, tgt.hk.eigenvectors, C)
+    truth, mirror = inv, inv[refl]  # source vertex i is target vertex inv[i]
+    Vt = V[perm]
+    d_true = np.linalg.norm(Vt[img.numpy()] - Vt[truth], axis=1)
+    d_mirror = np.linalg.norm(Vt[img.numpy()] - Vt[mirror], axis=1)
+    diag = np.linalg.norm(V.max(0) - V.min(0))
+    # descriptors cannot tell the two apart; the orientation term does
+    assert np.median(d_true) < 0.05 * diag
+    assert np.mean(d_true < d_mirror) > 0.8
+
+
+@pytest.fixture(scope="module")
+def cow_pair():
+    M = torchheat.load_mesh(DATA / "spot.obj")
+    W, G, perm = moved_copy(*M.numpy(), seed=3)  # source vertex i is target vertex perm[i]
+    return torchheat.prepare(M), torchheat.prepare(torchheat.Mesh(W, G)), perm
+
+
+def test_descriptor_seed_is_a_candidate_and_can_be_switched_off(cow_pair):
+    src, tgt, perm = cow_pair
+    W, _ = tgt.mesh.numpy()
+    diag = tgt.mesh.bbox_diagonal()
+    for seed in (True, False):
+        corr = torchheat.match(src, tgt, descriptor_seed=seed)
+        assert ("descriptor_seed" in corr.info["timings"]) == seed
+        err = np.linalg.norm(W[corr.map.numpy()] - W[perm], axis=1)
+        assert np.mean(err < 0.05 * diag) > 0.9

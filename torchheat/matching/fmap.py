@@ -1,0 +1,339 @@
+"""Functional maps from descriptors, with an orientation-preserving term: a map that needs no
+landmark, used as one more hypothesis for :mod:`.pipeline`'s ZoomOut choice.
+
+The heat-kernel hypotheses of :mod:`.pipeline` all start from one point; on humans every one of
+them can be a half-turn about the body axis (left/right and front/back swapped together, an
+orientation-preserving near-isometry) or a clean reflection, and then no choice among them is
+right. A functional map fitted to *all* points at once (Ovsjanikov et al., SIGGRAPH 2012) with
+the orientation-preserving operators of Ren, Poulenard, Liu, Melzi, Wonka, Ovsjanikov
+(*Continuous and Orientation-preserving Correspondences via Functional Maps*, SIGGRAPH Asia
+2018) does not depend on a landmark: the descriptor terms tie the map to the wave kernel
+signature (Aubry et al. 2011) and the orientation term rejects reflections. ZoomOut refines it
+like the other hypotheses, and the pipeline's residual + orientation score decides.
+
+Convention (as in :mod:`.zoomout`): for a point map ``T: M -> N`` the functional map ``C``
+(``k x k``) pulls target functions back, ``Phi_M C ~ Phi_N[T]``: target coefficients in, source
+coefficients out. The energy, a convex quadratic in ``C``, minimised exactly (its normal
+equations; pyFM runs L-BFGS on it, which stops short of the minimum)::
+
+    E(C) = w_d |C B - A|^2 / tau_d                        descriptors preserved
+         + w_l sum_ij mask_ij C_ij^2 / tau_l               commutes with the Laplacians
+         + w_c sum_q |C D^N_q - D^M_q C|^2 / tau_c          commutes with descriptor products
+         + w_o sum_q |C O^N_q - O^M_q C|^2 / tau_o          commutes with orientation operators
+
+``A``, ``B``: descriptors in the bases (``k x p``); ``D_q``: multiplication by descriptor ``q``;
+``O_q``: ``g -> <n x grad f_q, grad g>`` (the orientation operator of descriptor ``q``);
+``mask``: the resolvent mask of Ren et al. (SGP 2019, bounded in ``k``); ``tau``: each term's
+size at a generic map (so the weights are relative), as in pyFM.
+
+Cost (``k = 30``, ``p = 50`` descriptors, one thread): per shape, once (cached on the shape),
+the operators, ``O(p F k^2)`` for ``F`` faces: ~0.2 s for 5k vertices, ~0.5 s for 12.5k; per
+pair the ``k^2 x k^2`` normal equations, ``O(p k^4 + k^6)``: ~0.1 s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..operators import massmatrix
+from .prepared import PreparedShape
+
+__all__ = ["wave_kernel_signature", "orientation_operators", "shape_operators",
+           "descriptor_functional_map"]
+
+
+def wave_kernel_signature(evals: torch.Tensor, evecs: torch.Tensor, energies: np.ndarray,
+                          sigma: float) -> torch.Tensor:
+    """Wave kernel signature (Aubry, Schlickewei, Cremers 2011), scaled per energy.
+
+    ``WKS(x, e) = sum_i phi_i(x)^2 g_e(lambda_i) / sum_i g_e(lambda_i)`` with ``g_e(lambda) =
+    exp(-(e - log lambda)^2 / (2 sigma^2))``; the constant mode (``lambda ~ 0``) is left out.
+
+    Parameters
+    ----------
+    evals : torch.Tensor, shape (k,)
+        Laplace–Beltrami eigenvalues, ascending.
+    evecs : torch.Tensor, shape (n, k)
+        Mass-orthonormal eigenfunctions.
+    energies : numpy.ndarray, shape (E,)
+        Log-energies ``e``.
+    sigma : float
+        Width of the band-pass filters in log-energy.
+
+    Returns
+    -------
+    torch.Tensor, float64, shape (n, E)
+
+    Examples
+    --------
+    >>> ev = torch.tensor([0.0, 1.0, 4.0], dtype=torch.float64)
+    >>> phi = torch.eye(3, dtype=torch.float64)
+    >>> w = wave_kernel_signature(ev, phi, np.log([1.0, 4.0]), 0.1)
+    >>> [round(float(v), 3) for v in w[1]]  # vertex 1 carries the eigenfunction of 1.0
+    [1.0, 0.0]
+    """
+    lam = evals.detach().to(torch.float64).cpu()
+    phi = evecs.detach().to(torch.float64).cpu()
+    keep = lam > 1e-8 * lam.abs().max()
+    lam, phi = lam[keep], phi[:, keep]
+    e = torch.as_tensor(np.asarray(energies, dtype=np.float64))
+    g = torch.exp(-(e[:, None] - torch.log(lam)[None, :]) ** 2 / (2 * sigma**2))  # (E, k)
+    return (phi * phi) @ g.T / g.sum(1).clamp_min(1e-300)[None, :]
+
+
+def _unit_area(shape: PreparedShape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices scaled to unit area, faces, lumped vertex masses (those of the eigenbasis)."""
+    V, F = shape.mesh.numpy()
+    V = np.asarray(V, dtype=np.float64)
+    a = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    V = V / np.sqrt(a.sum() / 2.0)
+    return V, F, _diagonal(massmatrix(V, F))
+
+
+def _diagonal(M: torch.Tensor) -> np.ndarray:
+    M = M.to_sparse_coo().coalesce()
+    i = M.indices().numpy()
+    v = M.values().numpy()
+    d = np.zeros(M.shape[0])
+    on = i[0] == i[1]
+    np.add.at(d, i[0][on], v[on])
+    return d
+
+
+def _face_frames(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit face normals (F, 3), face areas (F,), hat-function gradients (F, 3 corners, 3)."""
+    e1 = V[F[:, 1]] - V[F[:, 0]]
+    e2 = V[F[:, 2]] - V[F[:, 0]]
+    cr = np.cross(e1, e2)
+    dbl = np.linalg.norm(cr, axis=1)
+    n = cr / np.maximum(dbl, 1e-300)[:, None]
+    # grad B_c = n x (opposite edge, counter-clockwise) / (2 area)
+    opp = np.stack([V[F[:, 2]] - V[F[:, 1]], V[F[:, 0]] - V[F[:, 2]],
+                    V[F[:, 1]] - V[F[:, 0]]], axis=1)
+    gB = np.cross(n[:, None, :], opp) / np.maximum(dbl, 1e-300)[:, None, None]
+    return n, dbl / 2.0, gB
+
+
+def orientation_operators(V: np.ndarray, F: np.ndarray, phi: np.ndarray, descr: np.ndarray
+                          ) -> np.ndarray:
+    """The orientation operators ``g -> <n x grad f_q, grad g>`` of descriptors ``f_q`` in a
+    basis: ``O_q[i, j] = int phi_i <n x grad f_q, grad phi_j> dA`` (piecewise-linear
+    functions, face-wise gradients, ``phi_i`` averaged over each face).
+
+    Parameters
+    ----------
+    V : numpy.ndarray, shape (n, 3)
+    F : numpy.ndarray, int, shape (m, 3)
+    phi : numpy.ndarray, shape (n, k)
+        Basis functions.
+    descr : numpy.ndarray, shape (n, p)
+        Descriptors ``f_q``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (p, k, k)
+
+    Examples
+    --------
+    >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); F = np.array([[0, 1, 2]])
+    >>> x, y = V[:, :1], V[:, 1:2]
+    >>> float(orientation_operators(V, F, np.ones((3, 1)), x)[0, 0, 0])  # grad of a constant
+    0.0
+    >>> float(orientation_operators(V, F, np.hstack([np.ones((3, 1)), y]), x)[0, 0, 1])
+    0.5
+    """
+    n, area, gB = _face_frames(V, F)
+    m, k, p = F.shape[0], phi.shape[1], descr.shape[1]
+    grad_phi = sum(gB[:, c, :, None] * phi[F[:, c]][:, None, :] for c in range(3))  # (m,3,k)
+    grad_d = sum(gB[:, c, :, None] * descr[F[:, c]][:, None, :] for c in range(3))  # (m,3,p)
+    rot = np.cross(n[:, :, None], grad_d, axisa=1, axisb=1, axisc=1)  # n x grad f_q
+    avg = torch.from_numpy(phi[F].mean(1) * area[:, None])  # (m, k)
+    rot_t = torch.from_numpy(np.ascontiguousarray(rot.transpose(0, 2, 1)))  # (m, p, 3)
+    gp = torch.from_numpy(grad_phi)
+    out = torch.zeros((k, p * k), dtype=torch.float64)
+    for a in range(0, m, 4096):  # faces in chunks: w is (chunk, p, k)
+        b = min(m, a + 4096)
+        w = torch.bmm(rot_t[a:b], gp[a:b])
+        out += avg[a:b].T @ w.reshape(b - a, p * k)
+    return out.reshape(k, p, k).permute(1, 0, 2).numpy()
+
+
+def _resolvent_mask(lam_s: np.ndarray, lam_t: np.ndarray, gamma: float = 0.5) -> np.ndarray:
+    """Ren et al. (SGP 2019): ``|R(lambda_i) - R(mu_j)|^2`` with ``R(x) = 1 / (x^gamma - i)``
+    on spectra scaled by their common maximum; rows: source, columns: target."""
+    scale = max(np.abs(lam_s).max(), np.abs(lam_t).max())
+    a, b = (np.abs(lam_s) / scale) ** gamma, (np.abs(lam_t) / scale) ** gamma
+    re_a, re_b = a / (a * a + 1), b / (b * b + 1)
+    im_a, im_b = 1 / (a * a + 1), 1 / (b * b + 1)
+    return (re_a[:, None] - re_b[None, :]) ** 2 + (im_a[:, None] - im_b[None, :]) ** 2
+
+
+def _effective_p(*red: np.ndarray) -> float:
+    vals = []
+    for Fm in red:
+        G = Fm[1:].T @ Fm[1:]
+        den = float((G * G).sum())
+        vals.append(float(np.trace(G)) ** 2 / den if den > 0 else 1.0)
+    return max(float(np.mean(vals)), 1e-12)
+
+
+def descriptor_functional_map(src: PreparedShape, tgt: PreparedShape, k: int = 30,
+                              n_descr: int = 50, weights: tuple[float, float, float, float] = (
+                                  1.0, 0.1, 1.0, 1.0)) -> torch.Tensor:
+    """A ``k x k`` functional map of two shapes from their wave kernel signatures, with the
+    orientation-preserving term; no landmark (see the module docstring for the energy).
+
+    Parameters
+    ----------
+    src, tgt : PreparedShape
+        Shapes with at least ``k`` eigenpairs (``src.hk.eigenvectors``; more eigenpairs give
+        the WKS a finer spectrum).
+    k : int
+        Size of the map.
+    n_descr : int
+        WKS energies (log-spaced between the shapes' first and last eigenvalues).
+    weights : (w_descr, w_lap, w_dcomm, w_orient)
+        Relative weights (pyFM's README pipeline: 1, 0.1, 1, 1).
+
+    Returns
+    -------
+    torch.Tensor, float64, shape (k, k)
+        ``C`` with ``Phi_M C ~ Phi_N[T]`` (see :mod:`.zoomout`); its point map is
+        :func:`~torchheat.matching.zoomout.spectral_map`.
+
+    Notes
+    -----
+    Accuracy: a coarse map (a few percent of the diameter on near-isometric shapes), meant as a
+    ZoomOut seed; a shape with an intrinsic symmetry that also preserves orientation (a
+    half-turn) gives such maps an ambiguity the energy cannot resolve.
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> m = trimesh.creation.icosphere(3)
+    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=40)
+    >>> C = descriptor_functional_map(s, s, k=10)
+    >>> tuple(C.shape)
+    (10, 10)
+    """
+    return torch.from_numpy(_solve_quadratic(*_terms(src, tgt, k, n_descr, weights)))
+
+
+def shape_operators(shape: PreparedShape, k: int, n_descr: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One shape's part of the energy: its WKS in the basis, the multiplication and the
+    orientation operators of its descriptors; computed once per shape and size (cached on the
+    shape: a shape in many pairs pays once).
+
+    The WKS filter bank is the shape's own (``n_descr`` log-energies between its first and
+    last non-zero eigenvalue, as pyFM does): it depends on the shape alone, and two
+    near-isometric unit-area shapes have nearly the same spectrum.
+
+    Parameters
+    ----------
+    shape : PreparedShape
+    k : int
+        Basis size (at most the shape's eigenpairs).
+    n_descr : int
+
+    Returns
+    -------
+    red : numpy.ndarray, shape (k, n_descr)
+        The unit-norm descriptors' coefficients.
+    mult, orient : numpy.ndarray, shape (n_descr, k, k)
+        ``phi_i^T A diag(d_q) phi_j`` and :func:`orientation_operators`.
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> m = trimesh.creation.icosphere(3)
+    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=40)
+    >>> [a.shape for a in shape_operators(s, 10, 8)]
+    [(10, 8), (8, 10, 10), (8, 10, 10)]
+    """
+    cache = shape.__dict__.setdefault("_fmap_operators", {})
+    lam = shape.hk.eigenvalues.double().numpy()
+    key = (int(k), int(n_descr), lam.size)
+    if key in cache:
+        return cache[key]
+    phi_all = shape.hk.eigenvectors.double()
+    pos = lam[lam > 1e-8 * np.abs(lam).max()]
+    e_min, e_max = np.log(pos.min()), np.log(pos.max())
+    sigma = 7.0 * (e_max - e_min) / max(2 * n_descr, 1)
+    energies = np.linspace(e_min + 2 * sigma, e_max - 2 * sigma, n_descr)
+    V, F, mass = _unit_area(shape)
+    d = wave_kernel_signature(torch.from_numpy(lam), phi_all, energies, sigma).numpy()
+    d = d / np.sqrt((mass[:, None] * d * d).sum(0)).clip(1e-300)[None, :]
+    phi = phi_all[:, :k].numpy()
+    red = (phi.T * mass[None, :]) @ d  # (k, p): coefficients in the basis
+    prod = (phi[:, :, None] * (phi * mass[:, None])[:, None, :]).reshape(-1, k * k)
+    mult = (d.T @ prod).reshape(-1, k, k)  # products with d_q: phi_i^T A diag(d_q) phi_j
+    cache[key] = (red, mult, orientation_operators(V, F, phi, d))
+    return cache[key]
+
+
+def _terms(src: PreparedShape, tgt: PreparedShape, k: int, n_descr: int,
+           weights: tuple[float, float, float, float]) -> tuple:
+    """Weights and matrices of the energy: ``(coef, A, B, mask, (D_M, D_N), (O_M, O_N))``."""
+    lam_s_all = src.hk.eigenvalues.double().numpy()
+    lam_t_all = tgt.hk.eigenvalues.double().numpy()
+    k = int(min(k, lam_s_all.size, lam_t_all.size))
+    A, Dm, Om = shape_operators(src, k, n_descr)
+    B, Dn, On = shape_operators(tgt, k, n_descr)
+    mask = _resolvent_mask(lam_s_all[:k], lam_t_all[:k])
+    m = k
+    p_eff = _effective_p(A, B)
+
+    def oplist_tau(o1: np.ndarray, o2: np.ndarray, skew: bool) -> float:
+        pos_ = k * (o1 * o1).sum() + k * (o2 * o2).sum()
+        tot = pos_ if skew else pos_ - 2 * (np.trace(o1, axis1=1, axis2=2)
+                                            * np.trace(o2, axis1=1, axis2=2)).sum()
+        return float(tot) * m / (k * k) / p_eff if tot > 1e-12 * pos_ else 1.0
+
+    tau = (max(m * float((A[1:] ** 2).sum()) / k / p_eff, 1e-300),
+           max(m * float(mask.sum()) / (k * k), 1e-300),
+           oplist_tau(Dm, Dn, False), oplist_tau(Om, On, True))
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    coef = [float(wi / ti) for wi, ti in zip(w, tau, strict=True)]
+    return coef, A, B, mask, (Dm, Dn), (Om, On)
+
+
+def _energy(C: np.ndarray, coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.ndarray,
+            dcomm: tuple[np.ndarray, np.ndarray], orient: tuple[np.ndarray, np.ndarray]
+            ) -> float:
+    """The energy of :func:`descriptor_functional_map` at ``C`` (for tests)."""
+    e = coef[0] * ((C @ B - A) ** 2).sum() + coef[1] * (mask * C * C).sum()
+    e += coef[2] * ((C @ dcomm[1] - dcomm[0] @ C) ** 2).sum()
+    e += coef[3] * ((C @ orient[1] - orient[0] @ C) ** 2).sum()
+    return float(e)
+
+
+def _comm_hessian(Q: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Hessian (``k^2 x k^2``, row-major ``vec``) of ``sum_q |C P_q - Q_q C|^2``:
+    ``I (x) sum P P^T + sum Q^T Q (x) I - S - S^T``, ``S = sum_q Q_q (x) P_q``."""
+    p, k, _ = Q.shape
+    eye = np.eye(k)
+    H = np.kron(eye, np.einsum("qab,qcb->ac", P, P)) + np.kron(
+        np.einsum("qba,qbc->ac", Q, Q), eye)
+    S = (Q.reshape(p, k * k).T @ P.reshape(p, k * k)).reshape(k, k, k, k)  # [i,a,j,b]
+    S = S.transpose(0, 2, 1, 3).reshape(k * k, k * k)  # [(i,j),(a,b)] = sum Q[i,a] P[j,b]
+    return H - S - S.T
+
+
+def _solve_quadratic(coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.ndarray,
+                     dcomm: tuple[np.ndarray, np.ndarray], orient: tuple[np.ndarray, np.ndarray]
+                     ) -> np.ndarray:
+    """The minimiser of the (convex, quadratic) energy of :func:`descriptor_functional_map`:
+    its normal equations, ``k^2`` unknowns, solved directly (``O(k^6)``: 0.03 s for
+    ``k = 30``) instead of by L-BFGS (pyFM), which stops short of it."""
+    k = A.shape[0]
+    H = coef[0] * np.kron(np.eye(k), B @ B.T) + coef[1] * np.diag(mask.ravel())
+    if coef[2]:
+        H += coef[2] * _comm_hessian(dcomm[0], dcomm[1])
+    if coef[3]:
+        H += coef[3] * _comm_hessian(orient[0], orient[1])
+    g = coef[0] * (A @ B.T).ravel()
+    H[np.diag_indices_from(H)] += 1e-12 * np.trace(H) / H.shape[0]  # a null direction
+    return np.linalg.solve(H, g).reshape(k, k)
