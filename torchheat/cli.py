@@ -384,7 +384,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
             raise CLIError(f"--partial-margin must be >= 0, got {args.partial_margin}")
         part_kw["partial_margin"] = args.partial_margin
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
-                 engine=args.engine, num_threads=args.threads, zoomout=args.zoomout, **part_kw)
+                 engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
+                 descriptor_seed=args.descriptor_seed, **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -729,6 +730,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write a colour-transfer picture of the map (of the matched "
                         "components with --largest-component)")
     _add_refinement(m)
+    m.add_argument("--no-descriptor-seed", dest="descriptor_seed", action="store_false",
+                   help="leave out the landmark-free hypothesis (a functional map of the "
+                        "shapes' wave kernel signatures with the orientation-preserving term) "
+                        "from the ZoomOut choice")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

@@ -227,6 +227,16 @@ def match(
         heat-kernel maps of correspondence augmentation, as before (``--no-zoomout``).
     zoomout_samples, zoomout_k, zoomout_hypotheses : int
         ZoomOut settings (see ``zoomout``).
+    descriptor_seed : bool
+        (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
+        30 x 30 functional map of the shapes' wave kernel signatures with the
+        orientation-preserving term (:func:`~torchheat.matching.fmap.
+        descriptor_functional_map`, the energy of pyFM's README pipeline, solved exactly),
+        upsampled by ZoomOut like the others (``--no-descriptor-seed``). On humans every
+        one-point hypothesis can be a half-turn (left/right and front/back swapped together);
+        this one is not tied to a landmark. Measured on 22 development TOSCA pairs: 81.2 ->
+        90.4 % of points under 0.25 (no pair worse), on 19 SCAPE pairs 86.3 -> 87.9 %; cost:
+        the per-shape operators once per shape (~0.2 s at 5k vertices), ~0.2 s per pair.
     partial : bool
         The source is a piece of the target (a partial or incomplete scan of it, in the same
         units): its time samples are scaled to the target's (one scale for both), landmarks and
