@@ -180,7 +180,7 @@ def _effective_p(*red: np.ndarray) -> float:
 
 def descriptor_functional_map(src: PreparedShape, tgt: PreparedShape, k: int = 30,
                               n_descr: int = 50, weights: tuple[float, float, float, float] = (
-                                  1.0, 0.1, 1.0, 1.0)) -> torch.Tensor:
+                                  1.0, 0.1, 1.0, 1.0), reversing: bool = False) -> torch.Tensor:
     """A ``k x k`` functional map of two shapes from their wave kernel signatures, with the
     orientation-preserving term; no landmark (see the module docstring for the energy).
 
@@ -195,6 +195,9 @@ def descriptor_functional_map(src: PreparedShape, tgt: PreparedShape, k: int = 3
         WKS energies (log-spaced between the shapes' first and last eigenvalues).
     weights : (w_descr, w_lap, w_dcomm, w_orient)
         Relative weights (pyFM's README pipeline: 1, 0.1, 1, 1).
+    reversing : bool
+        Ask for an orientation-reversing map instead (``C O_N = -O_M C``): a shape's intrinsic
+        symmetry when ``src is tgt``.
 
     Returns
     -------
@@ -217,7 +220,11 @@ def descriptor_functional_map(src: PreparedShape, tgt: PreparedShape, k: int = 3
     >>> tuple(C.shape)
     (10, 10)
     """
-    return torch.from_numpy(_solve_quadratic(*_terms(src, tgt, k, n_descr, weights)))
+    terms = _terms(src, tgt, k, n_descr, weights)
+    if reversing:
+        (Om, On) = terms[5]
+        terms = (*terms[:5], (Om, -On))
+    return torch.from_numpy(_solve_quadratic(*terms))
 
 
 def shape_operators(shape: PreparedShape, k: int, n_descr: int

@@ -626,6 +626,16 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         sym = min(rest, key=lambda r: logE(r) + w * r["orientation"]) if rest else None
         if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
             sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
+        if opt.zoomout and opt.descriptor_seed and tgt is src and opt.partial_ratio is None:
+            # the landmark-free orientation-reversing functional map, refined the same way;
+            # the lower ZoomOut residual wins
+            t_d = time.perf_counter()
+            alt = _descriptor_symmetry(src, rows, pos, tri, samples, opt)
+            timings["descriptor_seed"] = time.perf_counter() - t_d
+            if alt is not None and (sym is None or alt["zo"].residual < sym["zo"].residual):
+                sym = alt
+                hypotheses.append((["descriptor map"], float("nan"), alt["orientation"]))
+                hyp_images.append(alt["g"])
         if opt.zoomout and opt.partial_ratio is not None:
             # a piece: chosen by energy and orientation (a small piece's few modes do not
             # tell hypotheses apart: measured, the ZoomOut choice lost right maps of pieces
@@ -813,6 +823,28 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
 
 
 _DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
+
+
+def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Tensor,
+                         tri: tuple, samples: torch.Tensor, opt: _Options) -> dict | None:
+    """A shape's intrinsic symmetry from no landmark: the orientation-reversing functional
+    map of its wave kernel signatures (:func:`~torchheat.matching.fmap.
+    descriptor_functional_map`, ``reversing=True``), refined by ZoomOut to all modes like the
+    heat-kernel symmetric map. ``rows``/``pos``/``tri``: the refinement rows (samples first),
+    their positions and the orientation triangles of :func:`_refine`. None if it reads
+    orientation-preserving."""
+    phi = shape.hk.eigenvectors
+    k = min(_DESCR_K, phi.shape[1])
+    C = descriptor_functional_map(shape, shape, k=k, reversing=True)
+    zrows = _fps(shape, opt.zoomout_samples)
+    _, j = spectral_map(phi, phi, C, zrows)
+    zo = _zoomout_final(shape, shape, zrows, j, opt, k_start=k)
+    f_rows = spectral_map(phi, phi, zo.C, rows)[1]
+    o = _orientation(shape, shape, tri, lambda i: f_rows[pos[i]].numpy())
+    if o >= 0:
+        return None
+    return {"lms0": [], "g": f_rows[: samples.numel()], "zo": zo, "energy": float("nan"),
+            "orientation": o, "descriptor_seed": True}
 
 
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
