@@ -158,11 +158,12 @@ def _default_options(**kw):
     return _Options(**fields)
 
 
-@pytest.mark.parametrize("mirror", [True, False])
-def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror):
+@pytest.mark.parametrize(("mirror", "descriptor"), [(True, False), (False, False),
+                                                   (False, True)])
+def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor):
     """Seeded only with the (orientation-reversing) mirror map, the spectral choice reaches
-    the direct map through the target's self-symmetry; without the mirror partners it cannot
-    (so the test can fail)."""
+    the direct map through the target's self-symmetry, or through the landmark-free
+    descriptor candidate; without either it cannot (so the test can fail)."""
     from test_matching import mirror_mesh, mirror_permutation
 
     from torchheat.matching.pipeline import _spectral_choice
@@ -175,11 +176,14 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror):
     samples = _fps(S, 48)
     swap = torch.as_tensor(perm[mp])  # source x -> copy of its mirror image
     pool = [{"lms0": [], "g": swap[samples], "energy": 1.0, "orientation": -1.0}]
-    opt = _default_options(mirror_hypothesis=mirror)
+    opt = _default_options(mirror_hypothesis=mirror, descriptor_seed=descriptor)
     direct, _, diag = _spectral_choice(S, T, samples, pool, opt, {})
     truth = torch.as_tensor(perm)[direct["zo"].rows]
     right = float((direct["zo"].images == truth).float().mean())
-    if mirror:
+    if descriptor:
+        assert right > 0.95 and direct["zo_orientation"] > 0.5
+        assert direct.get("descriptor_seed") is True
+    elif mirror:
         assert right > 0.95 and direct["zo_orientation"] > 0.5
         assert len(diag) >= 2  # the mirror map and its partner(s)
     else:

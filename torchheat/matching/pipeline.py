@@ -623,19 +623,19 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             rest = [r for r in rest if r["orientation"] < 0]
         elif opt.orientation and tgt is not src:
             rest = []
+        if opt.zoomout and opt.descriptor_seed and tgt is src and opt.partial_ratio is None:
+            # the landmark-free orientation-reversing functional map: its sample images
+            # refined like every hypothesis, in the same pool (energy + orientation)
+            t_d = time.perf_counter()
+            alt = _descriptor_symmetry(src, rows, pos, tri, samples, refiner, opt)
+            timings["descriptor_seed"] = time.perf_counter() - t_d
+            hypotheses.append((["descriptor map"], alt["energy"], alt["orientation"]))
+            hyp_images.append(alt["g"])
+            if not opt.orientation or alt["orientation"] < 0:
+                rest.append(alt)
         sym = min(rest, key=lambda r: logE(r) + w * r["orientation"]) if rest else None
         if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
             sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
-        if opt.zoomout and opt.descriptor_seed and tgt is src and opt.partial_ratio is None:
-            # the landmark-free orientation-reversing functional map, refined the same way;
-            # the lower ZoomOut residual wins
-            t_d = time.perf_counter()
-            alt = _descriptor_symmetry(src, rows, pos, tri, samples, opt)
-            timings["descriptor_seed"] = time.perf_counter() - t_d
-            if alt is not None and (sym is None or alt["zo"].residual < sym["zo"].residual):
-                sym = alt
-                hypotheses.append((["descriptor map"], float("nan"), alt["orientation"]))
-                hyp_images.append(alt["g"])
         if opt.zoomout and opt.partial_ratio is not None:
             # a piece: chosen by energy and orientation (a small piece's few modes do not
             # tell hypotheses apart: measured, the ZoomOut choice lost right maps of pieces
@@ -826,25 +826,20 @@ _DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
 
 
 def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Tensor,
-                         tri: tuple, samples: torch.Tensor, opt: _Options) -> dict | None:
-    """A shape's intrinsic symmetry from no landmark: the orientation-reversing functional
-    map of its wave kernel signatures (:func:`~torchheat.matching.fmap.
-    descriptor_functional_map`, ``reversing=True``), refined by ZoomOut to all modes like the
-    heat-kernel symmetric map. ``rows``/``pos``/``tri``: the refinement rows (samples first),
-    their positions and the orientation triangles of :func:`_refine`. None if it reads
-    orientation-preserving."""
+                         tri: tuple, samples: torch.Tensor, refiner: _Refiner, opt: _Options
+                         ) -> dict:
+    """A shape's intrinsic symmetry from no landmark, as a hypothesis: the
+    orientation-reversing functional map of its wave kernel signatures
+    (:func:`~torchheat.matching.fmap.descriptor_functional_map`, ``reversing=True``), its images
+    of the refinement samples refined by correspondence augmentation like every hypothesis.
+    ``rows``/``pos``/``tri``: the refinement rows (samples first), their positions and the
+    orientation triangles of :func:`_refine`."""
     phi = shape.hk.eigenvectors
-    k = min(_DESCR_K, phi.shape[1])
-    C = descriptor_functional_map(shape, shape, k=k, reversing=True)
-    zrows = _fps(shape, opt.zoomout_samples)
-    _, j = spectral_map(phi, phi, C, zrows)
-    zo = _zoomout_final(shape, shape, zrows, j, opt, k_start=k)
-    f_rows = spectral_map(phi, phi, zo.C, rows)[1]
+    C = descriptor_functional_map(shape, shape, k=min(_DESCR_K, phi.shape[1]), reversing=True)
+    g0 = spectral_map(phi, phi, C, samples)[1]
+    f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
     o = _orientation(shape, shape, tri, lambda i: f_rows[pos[i]].numpy())
-    if o >= 0:
-        return None
-    return {"lms0": [], "g": f_rows[: samples.numel()], "zo": zo, "energy": float("nan"),
-            "orientation": o, "descriptor_seed": True}
+    return {"lms0": [], "g": g, "energy": energy, "orientation": o, "descriptor_seed": True}
 
 
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
@@ -859,8 +854,12 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     phi_s, phi_t = _bases(src, tgt)
     k = min(_DESCR_K, k_sel)
     C = descriptor_functional_map(src, tgt, k=k)
-    _, j = spectral_map(phi_s, phi_t[targets], C, rows)
-    zo = zoomout(phi_s, phi_t, rows, targets[j], rows, k_start=k, k_end=k_sel,
+    # seeded like every other candidate: its images of the refinement samples, from
+    # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
+    # than a comparable landmark hypothesis: measured, it then beat right maps)
+    seed_rows = rows[at_samples]
+    _, j = spectral_map(phi_s, phi_t[targets], C, seed_rows)
+    zo = zoomout(phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K, k_end=k_sel,
                  step=_ZO_STEP, targets=targets)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
