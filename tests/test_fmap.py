@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 from conftest import DATA, flat_grid, generic_sphere
 from scipy.optimize import fmin_l_bfgs_b
@@ -103,3 +104,30 @@ def test_descriptor_seed_is_a_candidate_and_can_be_switched_off(cow_pair):
         assert ("descriptor_seed" in corr.info["timings"]) == seed
         err = np.linalg.norm(W[corr.map.numpy()] - W[perm], axis=1)
         assert np.mean(err < 0.05 * diag) > 0.9
+
+
+def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
+    """The descriptor candidate is dropped when a direct landmark candidate is nearly the same
+    map (a limb apart), and kept when the agreeing candidate reads orientation-reversing."""
+    from types import SimpleNamespace
+
+    from torchheat.matching.pipeline import _descriptor_candidate
+    from torchheat.matching.prepared import _fps
+
+    src, tgt, perm = cow_pair
+    rows = _fps(src, 500)
+    at_samples = torch.arange(48)
+    targets = _fps(tgt, 2000)
+    first = _descriptor_candidate(src, tgt, rows, at_samples, [], 60, targets, lambda im: 0.9)
+    assert len(first) == 1
+    images = first[0]["zo"].images.clone()
+    # the same map with its last 30 % of samples sent to one far target vertex
+    W, _ = tgt.mesh.numpy()
+    far = int(np.argmax(np.linalg.norm(W - W[images[0].item()], axis=1)))
+    variant = images.clone()
+    variant[int(0.7 * len(variant)):] = far
+    for orientation, kept in ((0.8, 0), (-0.8, 1)):
+        cand = {"zo": SimpleNamespace(images=variant), "zo_orientation": orientation}
+        out = _descriptor_candidate(src, tgt, rows, at_samples, [cand], 60, targets,
+                                    lambda im: 0.9)
+        assert len(out) == kept
