@@ -234,9 +234,10 @@ def match(
         descriptor_functional_map`, the energy of pyFM's README pipeline, solved exactly),
         upsampled by ZoomOut like the others (``--no-descriptor-seed``). On humans every
         one-point hypothesis can be a half-turn (left/right and front/back swapped together);
-        this one is not tied to a landmark. Measured on 22 development TOSCA pairs: 81.2 ->
-        90.4 % of points under 0.25 (no pair worse), on 19 SCAPE pairs 86.3 -> 87.9 %; cost:
-        the per-shape operators once per shape (~0.2 s at 5k vertices), ~0.2 s per pair.
+        this one is not tied to a landmark. It stays out when it is a variant (>= 65 %
+        agreement) of a landmark candidate reading a direct orientation. All 284 TOSCA 5k test
+        pairs: 94.9 -> 96.8 % of points under 0.25; SCAPE 50 pairs: 88.1 -> 89.3 %; cost
+        +0.3 s per TOSCA pair (RESULTS.md, BENCHMARKS.md).
     partial : bool
         The source is a piece of the target (a partial or incomplete scan of it, in the same
         units): its time samples are scaled to the target's (one scale for both), landmarks and
