@@ -131,3 +131,18 @@ def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
         out = _descriptor_candidate(src, tgt, rows, at_samples, [cand], 60, targets,
                                     lambda im: 0.9)
         assert len(out) == kept
+
+
+def test_operators_built_once_per_shape(monkeypatch):
+    """A match builds each shape's descriptor operators once: the target's self-symmetry (a
+    view of it at its own times) shares the cache."""
+    M = torchheat.load_mesh(DATA / "spot.obj")
+    W, G, perm = moved_copy(*M.numpy(), seed=3)
+    calls = []
+    orig = fmap.orientation_operators
+    monkeypatch.setattr(fmap, "orientation_operators",
+                        lambda *a, **k: calls.append(1) or orig(*a, **k))
+    s, t = torchheat.prepare(M), torchheat.prepare(torchheat.Mesh(W, G))
+    corr = torchheat.match(s, t, background=False)
+    assert len(calls) == 2
+    assert np.mean(corr.map.numpy() == perm) > 0.95

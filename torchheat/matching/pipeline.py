@@ -951,6 +951,8 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
         view.hk.set_times(own)
         if "_fps_cache" in shape.__dict__:
             view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
+        # the descriptor operators depend on the eigenbasis only: one cache for both
+        view.__dict__["_fmap_operators"] = shape.__dict__.setdefault("_fmap_operators", {})
     corr = match(view, view, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS)
