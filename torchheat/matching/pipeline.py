@@ -632,7 +632,9 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             timings["descriptor_seed"] = time.perf_counter() - t_d
             hypotheses.append((["descriptor map"], alt["energy"], alt["orientation"]))
             hyp_images.append(alt["g"])
-            if not opt.orientation or alt["orientation"] < 0:
+            # it must read a clear reversal, as a direct candidate must read >= 0.3 (measured:
+            # a near-identity mixture reading -0.19 won by its low energy on victoria12)
+            if not opt.orientation or alt["orientation"] <= -_DESCR_DIRECT:
                 rest.append(alt)
         sym = min(rest, key=lambda r: logE(r) + w * r["orientation"]) if rest else None
         if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
