@@ -8,7 +8,7 @@ import pytest
 import scipy.linalg
 import scipy.sparse as sp
 import torch
-from conftest import generic_sphere, torus_faces
+from conftest import flat_grid, generic_sphere, torus_faces
 from scipy.sparse.linalg import expm_multiply
 
 from torchheat import HeatKernel, Mesh, default_times, laplacian
@@ -123,8 +123,6 @@ def test_flat_torus_kernel_is_the_analytic_fourier_kernel():
 
 
 def test_dirichlet_columns_match_dense_expm():
-    from conftest import flat_grid
-
     V, F = flat_grid(14, 11)
     rng = np.random.default_rng(0)
     V[:, 2] = 0.1 * rng.standard_normal(len(V))  # bumpy, not flat
@@ -215,3 +213,17 @@ def test_given_eigenpairs_of_another_mesh_are_refused():
     assert torch.equal(again.eigenvalues, hk.eigenvalues)
     with pytest.raises(ValueError, match="not those of this operator"):
         HeatKernel(B, k=20, method="spectral", eigenpairs=own)
+
+
+@pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
+def test_vertex_mass_is_the_eigenvectors_inner_product(boundary):
+    V, F = flat_grid(14, 11)
+    hk = HeatKernel(Mesh(V, F), k=12, boundary=boundary)
+    a = hk.vertex_mass.numpy()
+    phi = hk.eigenvectors.numpy()
+    np.testing.assert_allclose(phi.T @ (a[:, None] * phi), np.eye(12), atol=1e-10)
+    on_boundary = Mesh(V, F).boundary_vertices().numpy()
+    if boundary == "neumann":  # the unit-area shape's lumped masses
+        assert a.sum() == pytest.approx(1.0) and np.all(a > 0)
+    else:  # boundary vertices are not degrees of freedom
+        assert np.all(a[on_boundary] == 0) and np.all(a[~on_boundary] > 0) and a.sum() < 1

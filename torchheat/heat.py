@@ -608,6 +608,15 @@ class HeatKernel:
         phi[self._idx] = self._phi_red
         return torch.from_numpy(phi)
 
+    @property
+    def vertex_mass(self) -> torch.Tensor:
+        """Lumped vertex masses of the unit-area shape, shape (n,): the weights of the
+        eigenvectors' inner product (exactly, for the default lumped mass; the row sums of the
+        consistent mass otherwise); zero at Dirichlet boundary vertices."""
+        a = np.zeros(self.n)
+        a[self._idx] = self._a
+        return torch.from_numpy(a)
+
     # ---------------------------------------------------------------------------------
     def _reduced_sources(self, sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         src = np.asarray(

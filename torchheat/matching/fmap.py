@@ -36,7 +36,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..operators import massmatrix
 from .prepared import PreparedShape
 
 __all__ = ["wave_kernel_signature", "orientation_operators", "shape_operators",
@@ -83,22 +82,10 @@ def wave_kernel_signature(evals: torch.Tensor, evecs: torch.Tensor, energies: np
 
 
 def _unit_area(shape: PreparedShape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices scaled to unit area, faces, lumped vertex masses (those of the eigenbasis)."""
+    """Vertices scaled to unit area, faces, vertex masses of the eigenbasis (unit area)."""
     V, F = shape.mesh.numpy()
-    V = np.asarray(V, dtype=np.float64)
-    a = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-    V = V / np.sqrt(a.sum() / 2.0)
-    return V, F, _diagonal(massmatrix(V, F))
-
-
-def _diagonal(M: torch.Tensor) -> np.ndarray:
-    M = M.to_sparse_coo().coalesce()
-    i = M.indices().numpy()
-    v = M.values().numpy()
-    d = np.zeros(M.shape[0])
-    on = i[0] == i[1]
-    np.add.at(d, i[0][on], v[on])
-    return d
+    V = np.asarray(V, dtype=np.float64) / np.sqrt(shape.mesh.area())
+    return V, F, shape.hk.vertex_mass.numpy()
 
 
 def _face_frames(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

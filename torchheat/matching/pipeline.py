@@ -870,17 +870,16 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     im = zo.images.numpy()
 
-    def agree(o: dict) -> float:
-        return float(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
-                             <= radius))
-
-    if any(agree(o) >= _ZO_SAME for o in cands):
+    agree = [float(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
+                           <= radius)) for o in cands]
+    if any(a >= _ZO_SAME for a in agree):
         return []
     # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
     # out: measured on TOSCA, such variants won at a lower ZoomOut residual while less right
     # (12 pairs: 95-100 % -> 63-93 %); where the descriptor map was the right one, no direct
     # landmark candidate agreed with it on more than 45 % of the samples
-    if any(o["zo_orientation"] >= _DESCR_DIRECT and agree(o) >= _DESCR_VARIANT for o in cands):
+    if any(o["zo_orientation"] >= _DESCR_DIRECT and a >= _DESCR_VARIANT
+           for o, a in zip(cands, agree, strict=True)):
         return []
     return [{"lms0": [], "g": zo.images[at_samples], "zo": zo, "energy": float("nan"),
              "orientation": float("nan"), "zo_orientation": orient(zo.images),
