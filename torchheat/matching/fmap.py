@@ -39,15 +39,18 @@ import torch
 from .prepared import PreparedShape
 
 __all__ = ["wave_kernel_signature", "orientation_operators", "shape_operators",
-           "descriptor_functional_map"]
+           "descriptor_operators", "descriptor_functional_map"]
 
 
 def wave_kernel_signature(evals: torch.Tensor, evecs: torch.Tensor, energies: np.ndarray,
-                          sigma: float) -> torch.Tensor:
+                          sigma: float, normalize: bool = True) -> torch.Tensor:
     """Wave kernel signature (Aubry, Schlickewei, Cremers 2011), scaled per energy.
 
     ``WKS(x, e) = sum_i phi_i(x)^2 g_e(lambda_i) / sum_i g_e(lambda_i)`` with ``g_e(lambda) =
     exp(-(e - log lambda)^2 / (2 sigma^2))``; the constant mode (``lambda ~ 0``) is left out.
+    ``normalize=False`` drops the denominator: the local density of states, which agrees on a
+    piece and on the whole it was cut from (same units) where the denominators do not (the
+    piece has fewer eigenvalues in every band).
 
     Parameters
     ----------
@@ -59,6 +62,8 @@ def wave_kernel_signature(evals: torch.Tensor, evecs: torch.Tensor, energies: np
         Log-energies ``e``.
     sigma : float
         Width of the band-pass filters in log-energy.
+    normalize : bool
+        Divide by ``sum_i g_e(lambda_i)`` (default).
 
     Returns
     -------
@@ -78,6 +83,8 @@ def wave_kernel_signature(evals: torch.Tensor, evecs: torch.Tensor, energies: np
     lam, phi = lam[keep], phi[:, keep]
     e = torch.as_tensor(np.asarray(energies, dtype=np.float64))
     g = torch.exp(-(e[:, None] - torch.log(lam)[None, :]) ** 2 / (2 * sigma**2))  # (E, k)
+    if not normalize:
+        return (phi * phi) @ g.T
     return (phi * phi) @ g.T / g.sum(1).clamp_min(1e-300)[None, :]
 
 
@@ -259,14 +266,47 @@ def shape_operators(shape: PreparedShape, k: int, n_descr: int
     V, F, mass = _unit_area(shape)
     d = wave_kernel_signature(torch.from_numpy(lam), phi_all, energies, sigma).numpy()
     d = d / np.sqrt((mass[:, None] * d * d).sum(0)).clip(1e-300)[None, :]
-    phi = np.ascontiguousarray(phi_all[:, :k].numpy())
+    cache[key] = descriptor_operators(V, F, mass, phi_all[:, :k].numpy(), d)
+    return cache[key]
+
+
+def descriptor_operators(V: np.ndarray, F: np.ndarray, mass: np.ndarray, phi: np.ndarray,
+                         d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Descriptors ``d`` in a basis ``phi``: their coefficients, multiplication operators and
+    orientation operators (the shape's part of the energy, see :func:`shape_operators`).
+
+    Parameters
+    ----------
+    V : numpy.ndarray, shape (n, 3)
+    F : numpy.ndarray, int, shape (m, 3)
+    mass : numpy.ndarray, shape (n,)
+        Lumped vertex masses (the basis is mass-orthonormal).
+    phi : numpy.ndarray, shape (n, k)
+    d : numpy.ndarray, shape (n, p)
+
+    Returns
+    -------
+    red : numpy.ndarray, shape (k, p)
+        ``phi^T A d``.
+    mult, orient : numpy.ndarray, shape (p, k, k)
+        ``phi_i^T A diag(d_q) phi_j`` and :func:`orientation_operators`.
+
+    Examples
+    --------
+    >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); F = np.array([[0, 1, 2]])
+    >>> red, mult, orient = descriptor_operators(V, F, np.ones(3), np.eye(3)[:, :2],
+    ...                                          V[:, :1])
+    >>> red.ravel().tolist(), mult[0].tolist()
+    ([0.0, 1.0], [[0.0, 0.0], [0.0, 1.0]])
+    """
+    phi = np.ascontiguousarray(phi, dtype=np.float64)
+    k = phi.shape[1]
     red = (phi.T * mass[None, :]) @ d  # (k, p): coefficients in the basis
     dm = d * mass[:, None]
     mult = np.empty((d.shape[1], k, k))  # products with d_q: phi_i^T A diag(d_q) phi_j
     for i in range(k):  # k GEMMs with an (n, p) temporary (one (n, k, k) array: 4x slower)
         mult[:, i, :] = (dm * phi[:, i : i + 1]).T @ phi
-    cache[key] = (red, mult, orientation_operators(V, F, phi, d))
-    return cache[key]
+    return red, mult, orientation_operators(V, F, phi, d)
 
 
 def _terms(src: PreparedShape, tgt: PreparedShape, k: int, n_descr: int,
@@ -278,22 +318,29 @@ def _terms(src: PreparedShape, tgt: PreparedShape, k: int, n_descr: int,
     A, Dm, Om = shape_operators(src, k, n_descr)
     B, Dn, On = shape_operators(tgt, k, n_descr)
     mask = _resolvent_mask(lam_s_all[:k], lam_t_all[:k])
-    m = k
+    coef = _coefficients(A, B, mask, (Dm, Dn), (Om, On), weights)
+    return coef, A, B, mask, (Dm, Dn), (Om, On)
+
+
+def _coefficients(A: np.ndarray, B: np.ndarray, mask: np.ndarray,
+                  dcomm: tuple[np.ndarray, np.ndarray], orient: tuple[np.ndarray, np.ndarray],
+                  weights: tuple[float, ...]) -> list[float]:
+    """``w_i / tau_i``: each term's weight over its size at a generic ``a x b`` map (pyFM's
+    normalisation, so that the weights are relative)."""
+    a, b = mask.shape
     p_eff = _effective_p(A, B)
 
     def oplist_tau(o1: np.ndarray, o2: np.ndarray, skew: bool) -> float:
-        pos_ = k * (o1 * o1).sum() + k * (o2 * o2).sum()
+        pos_ = b * (o1 * o1).sum() + a * (o2 * o2).sum()
         tot = pos_ if skew else pos_ - 2 * (np.trace(o1, axis1=1, axis2=2)
                                             * np.trace(o2, axis1=1, axis2=2)).sum()
-        return float(tot) * m / (k * k) / p_eff if tot > 1e-12 * pos_ else 1.0
+        return float(tot) / a / p_eff if tot > 1e-12 * pos_ else 1.0
 
-    tau = (max(m * float((A[1:] ** 2).sum()) / k / p_eff, 1e-300),
-           max(m * float(mask.sum()) / (k * k), 1e-300),
-           oplist_tau(Dm, Dn, False), oplist_tau(Om, On, True))
+    tau = (max(float((A[1:] ** 2).sum()) / p_eff, 1e-300), max(float(mask.sum()) / a, 1e-300),
+           oplist_tau(*dcomm, False), oplist_tau(*orient, True))
     w = np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
-    coef = [float(wi / ti) for wi, ti in zip(w, tau, strict=True)]
-    return coef, A, B, mask, (Dm, Dn), (Om, On)
+    return [float(wi / ti) for wi, ti in zip(w, tau, strict=True)]
 
 
 def _energy(C: np.ndarray, coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.ndarray,
@@ -307,29 +354,36 @@ def _energy(C: np.ndarray, coef: list[float], A: np.ndarray, B: np.ndarray, mask
 
 
 def _comm_hessian(Q: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Hessian (``k^2 x k^2``, row-major ``vec``) of ``sum_q |C P_q - Q_q C|^2``:
+    """Hessian (``ab x ab``, row-major ``vec`` of an ``a x b`` map) of ``sum_q |C P_q - Q_q C|^2``
+    (``Q_q``: ``a x a``, ``P_q``: ``b x b``):
     ``I (x) sum P P^T + sum Q^T Q (x) I - S - S^T``, ``S = sum_q Q_q (x) P_q``."""
-    p, k, _ = Q.shape
-    eye = np.eye(k)
-    H = np.kron(eye, np.einsum("qab,qcb->ac", P, P)) + np.kron(
-        np.einsum("qba,qbc->ac", Q, Q), eye)
-    S = (Q.reshape(p, k * k).T @ P.reshape(p, k * k)).reshape(k, k, k, k)  # [i,a,j,b]
-    S = S.transpose(0, 2, 1, 3).reshape(k * k, k * k)  # [(i,j),(a,b)] = sum Q[i,a] P[j,b]
+    p, a, _ = Q.shape
+    b = P.shape[1]
+    H = np.kron(np.eye(a), np.einsum("qab,qcb->ac", P, P)) + np.kron(
+        np.einsum("qba,qbc->ac", Q, Q), np.eye(b))
+    S = (Q.reshape(p, a * a).T @ P.reshape(p, b * b)).reshape(a, a, b, b)  # [i,k,j,l]
+    S = S.transpose(0, 2, 1, 3).reshape(a * b, a * b)  # [(i,j),(k,l)] = sum Q[i,k] P[j,l]
     return H - S - S.T
 
 
 def _solve_quadratic(coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.ndarray,
-                     dcomm: tuple[np.ndarray, np.ndarray], orient: tuple[np.ndarray, np.ndarray]
-                     ) -> np.ndarray:
+                     dcomm: tuple[np.ndarray, np.ndarray], orient: tuple[np.ndarray, np.ndarray],
+                     gram: np.ndarray | None = None) -> np.ndarray:
     """The minimiser of the (convex, quadratic) energy of :func:`descriptor_functional_map`:
-    its normal equations, ``k^2`` unknowns, solved directly (``O(k^6)``: 0.03 s for
-    ``k = 30``) instead of by L-BFGS (pyFM), which stops short of it."""
-    k = A.shape[0]
-    H = coef[0] * np.kron(np.eye(k), B @ B.T) + coef[1] * np.diag(mask.ravel())
+    its normal equations, ``ab`` unknowns for an ``a x b`` map, solved directly (``O(a^3
+    b^3)``: 0.03 s for ``a = b = 30``) instead of by L-BFGS (pyFM), which stops short of it.
+
+    ``gram`` (``a x a``, default the identity) weighs the descriptor term in space:
+    ``|C B - A|^2`` becomes ``tr((C B)^T G C B) - 2 tr((C B)^T A)``, i.e. ``sum_x w(x) |Phi_M[x]
+    C B - d_M(x)|^2`` with ``G = Phi^T W Phi`` and ``A = Phi^T W d_M`` (``W``: weights times
+    masses)."""
+    a = A.shape[0]
+    G = np.eye(a) if gram is None else gram
+    H = coef[0] * np.kron(G, B @ B.T) + coef[1] * np.diag(mask.ravel())
     if coef[2]:
         H += coef[2] * _comm_hessian(dcomm[0], dcomm[1])
     if coef[3]:
         H += coef[3] * _comm_hessian(orient[0], orient[1])
     g = coef[0] * (A @ B.T).ravel()
     H[np.diag_indices_from(H)] += 1e-12 * np.trace(H) / H.shape[0]  # a null direction
-    return np.linalg.solve(H, g).reshape(k, k)
+    return np.linalg.solve(H, g).reshape(mask.shape)
