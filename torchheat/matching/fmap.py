@@ -334,9 +334,11 @@ def _coefficients(A: np.ndarray, B: np.ndarray, mask: np.ndarray,
         pos_ = b * (o1 * o1).sum() + a * (o2 * o2).sum()
         tot = pos_ if skew else pos_ - 2 * (np.trace(o1, axis1=1, axis2=2)
                                             * np.trace(o2, axis1=1, axis2=2)).sum()
-        return float(tot) / a / p_eff if tot > 1e-12 * pos_ else 1.0
+        return float(tot) * a / (a * a) / p_eff if tot > 1e-12 * pos_ else 1.0
 
-    tau = (max(float((A[1:] ** 2).sum()) / p_eff, 1e-300), max(float(mask.sum()) / a, 1e-300),
+    # (written so that a square map gets the operations of the square-only code, bit for bit)
+    tau = (max(a * float((A[1:] ** 2).sum()) / a / p_eff, 1e-300),
+           max(a * float(mask.sum()) / (a * a), 1e-300),
            oplist_tau(*dcomm, False), oplist_tau(*orient, True))
     w = np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
