@@ -733,7 +733,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--no-descriptor-seed", dest="descriptor_seed", action="store_false",
                    help="leave out the landmark-free hypothesis (a functional map of the "
                         "shapes' wave kernel signatures with the orientation-preserving term) "
-                        "from the ZoomOut choice")
+                        "from the ZoomOut choice; with --partial, the partial functional map "
+                        "that seeds and scores the piece's hypotheses")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

@@ -17,6 +17,12 @@ What changes against a full match (see :func:`torchheat.match` with ``partial=Tr
   refinement and of ZoomOut are taken among the vertices at least ``margin`` from the cut,
   where the heat kernel of the piece is close to that of the whole (Neumann and Dirichlet
   conditions both change it only near the boundary). Every vertex still gets an image.
+* **A landmark-free map** (:func:`partial_descriptor_map`): one-point maps with small times
+  are precise where right but often wrong as a whole; a partial functional map of wave kernel
+  signatures (both shapes at the whole's scale, orientation term) is coarse but needs no
+  landmark. The pipeline refines it by :func:`partial_zoomout`, seeds one-point hypotheses
+  from its images of the deepest features, and scores every hypothesis by its agreement with
+  it (:mod:`.pipeline`, ``descriptor_seed``).
 * **Rectangular functional maps.** A piece's ``j``-th eigenvalue is about that of the whole's
   ``j / r``-th (Weyl's law), so ZoomOut grows ``ceil(r k)`` modes of the piece against ``k``
   of the whole (Rodolà et al. 2017, Melzi et al. 2019, Sec. 6). The functional map pulls the

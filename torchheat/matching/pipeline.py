@@ -239,7 +239,12 @@ def match(
         this one is not tied to a landmark. It stays out when it is a variant (>= 65 %
         agreement) of a landmark candidate reading a direct orientation. All 284 TOSCA 5k test
         pairs: 94.9 -> 96.8 % of points under 0.25; SCAPE 50 pairs: 88.1 -> 89.3 %; cost
-        +0.3 s per TOSCA pair (RESULTS.md, BENCHMARKS.md).
+        +0.3 s per TOSCA pair (RESULTS.md, BENCHMARKS.md). With ``partial=True`` (piece
+        scale): the rectangular partial functional map of
+        :func:`~torchheat.matching.partial.partial_descriptor_map`, refined by rectangular
+        ZoomOut, is one more hypothesis, its images of the 4 deepest source features seed
+        four one-point hypotheses, and every hypothesis's score gets ``- 4 * agreement``
+        with it (SHREC'16 cuts, all 90: 67.9 -> 77.5 % under 0.25).
     partial : bool
         The source is a piece of the target (a partial or incomplete scan of it, in the same
         units): its time samples are scaled to the target's (one scale for both), landmarks and
