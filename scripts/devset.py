@@ -86,7 +86,7 @@ def run_pair(pr, opts, geo):
     out["orc"] = max(hyps) if hyps else float("nan")
     zc = corr.info.get("zoomout_candidates") or []
     out["zc"] = [(round(_frac(V, im.numpy(), true[rows.numpy()], area, 0.08), 3),
-                  round(res, 4), round(o, 2), ch) for rows, im, res, o, ch in zc]
+                  round(res, 4), round(o, 2), ch) for rows, im, res, o, ch, *_ in zc]
     out["zorc"] = max((z[0] for z in out["zc"]), default=float("nan"))
     if geo:
         from torchheat.evaluate import GeodesicSolver, geodesic_errors

@@ -821,9 +821,10 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     rest = [r for r in cands if r is not direct
             and (not opt.orientation or r["zo_orientation"] < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
-    # diagnostics: (rows, images, residual, orientation, chosen) of every ZoomOut candidate
-    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct)
-            for r in cands]
+    # diagnostics: (rows, images, residual, orientation, chosen, landmark-free) of every
+    # ZoomOut candidate
+    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
+             bool(r.get("descriptor_seed"))) for r in cands]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for r in (direct, sym):
