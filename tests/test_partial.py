@@ -155,6 +155,22 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     assert agree[won] > 0.3  # the right map agrees with the coarse landmark-free one
 
 
+def test_partial_auto_keeps_a_clear_piece_map_without_the_unit_scale(spot_piece, monkeypatch):
+    # a piece-scale map whose agreement + 0.5 quality reaches the bar is kept at once (the
+    # cow reads 0.885, under the default 0.9: lowered here to take that path)
+    from torchheat.matching import pipeline
+
+    piece, whole, truth = spot_piece
+    monkeypatch.setattr(pipeline, "_PARTIAL_ENOUGH", 0.5)
+    corr = match(piece, whole, partial=True)
+    info = corr.info["partial"]
+    assert set(info["quality"]) == {"piece"} and "not tried" in info["chosen_by"]
+    assert "other_scale" not in corr.info["timings"] or corr.info["timings"]["other_scale"] == 0
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.05) > 0.9
+
+
 def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece):
     piece, whole, _ = spot_piece
     V, F = whole.numpy()
