@@ -477,7 +477,8 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         q = corr.quality.quality if corr.quality is not None else -1.0
         if dense_free is None:
             dense_free = _landmark_free_dense(src, tgt, corr)
-        a = None if dense_free is None else _agreement(src, tgt, corr.map, dense_free)
+        pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))
+        a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
         out.append((q, label, corr, a))
         if len(out) == 1 and a is not None and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH:
             skipped = True  # the piece-scale map is clearly right: the unit scale is not tried
@@ -532,14 +533,12 @@ def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspon
     return None if C is None else dense_partial_map(src, tgt, C)
 
 
-def _agreement(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
-               other: torch.Tensor) -> float:
-    """Share of ``_PARTIAL_AUTO_POINTS`` farthest-point source vertices whose images under
-    two maps lie within ``_PARTIAL_AGREE_RADIUS sqrt(area(N))`` of each other."""
-    pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))
+def _agreement(tgt: PreparedShape, images: torch.Tensor, other: torch.Tensor) -> float:
+    """Share of the positions where two arrays of target vertices lie within
+    ``_PARTIAL_AGREE_RADIUS sqrt(area(N))`` of each other (Euclidean)."""
     Vt = torch.as_tensor(tgt.mesh.numpy()[0])
     radius = _PARTIAL_AGREE_RADIUS * math.sqrt(tgt.mesh.area())
-    return float(((Vt[fmap[pts]] - Vt[other[pts]]).norm(dim=1) < radius).double().mean())
+    return float(((Vt[images] - Vt[other]).norm(dim=1) < radius).double().mean())
 
 
 def _pair_shapes(pair: Any) -> tuple[Any, Any]:
@@ -714,11 +713,8 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             # a piece: energies of one-point maps with small times hardly tell right from
             # wrong; agreeing with the landmark-free map where it is right does (see
             # _PARTIAL_AGREE); the landmark-free map itself does not compete (coarse)
-            Vt_ = torch.as_tensor(Vt)
-            radius = _PARTIAL_AGREE_RADIUS * math.sqrt(tgt.mesh.area())
             for r in good:
-                r["agree_descr"] = float(((Vt_[r["g"]] - Vt_[descr[0]["g"]]).norm(dim=1)
-                                          < radius).double().mean())
+                r["agree_descr"] = _agreement(tgt, r["g"], descr[0]["g"])
             direct = min((r for r in good if r is not descr[0]),
                          key=lambda r: logE(r) - w * r["orientation"]
                          - _PARTIAL_AGREE * r["agree_descr"])
