@@ -471,7 +471,17 @@ def partial_descriptor_map(src: PreparedShape, tgt: PreparedShape, ratio: float,
     >>> tuple(partial_descriptor_map(s, s, 1.0, k=10).shape)
     (10, 10)
     """
-    r = float(ratio)
+    terms = _partial_terms(src, tgt, float(ratio), k, n_descr, weights, ramp, dist)
+    C = _solve_quadratic(*terms)
+    return torch.from_numpy(C / math.sqrt(float(ratio)))
+
+
+def _partial_terms(src: PreparedShape, tgt: PreparedShape, r: float, k: int, n_descr: int,
+                   weights: tuple[float, float, float, float], ramp: float,
+                   dist: np.ndarray | None) -> tuple:
+    """The energy of :func:`partial_descriptor_map` at the whole's scale, as the arguments of
+    :func:`~torchheat.matching.fmap._solve_quadratic` (``coef, A, B, mask, (D_M, D_N),
+    (O_M, O_N), gram``); its minimiser is ``sqrt(r)`` times the returned map."""
     scale = math.sqrt(tgt.mesh.area())
     lam_t = tgt.hk.eigenvalues.double().numpy()
     lam_s = src.hk.eigenvalues.double().numpy() / r
@@ -504,8 +514,7 @@ def partial_descriptor_map(src: PreparedShape, tgt: PreparedShape, ratio: float,
         dist = boundary_distance(src.mesh, scale)
     w = np.clip(np.where(np.isfinite(dist), dist, np.inf) / ramp, 0.0, 1.0) * mass_s
     gram = (ph_s.T * w[None, :]) @ ph_s
-    C = _solve_quadratic(coef, (ph_s.T * w[None, :]) @ d_s, B, mask, (Dm, Dn), (Om, On), gram)
-    return torch.from_numpy(C / math.sqrt(r))
+    return coef, (ph_s.T * w[None, :]) @ d_s, B, mask, (Dm, Dn), (Om, On), gram
 
 
 def partial_descriptor_images(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
