@@ -14,6 +14,7 @@ from test_matching import moved_copy
 
 from torchheat import Mesh, load_mesh, match, prepare
 from torchheat.cli import main
+from torchheat.matching import partial
 from torchheat.matching.partial import (
     area_ratio,
     boundary_distance,
@@ -131,6 +132,12 @@ def test_partial_descriptor_map_places_a_piece_without_landmarks(spot_piece):
     err = np.linalg.norm(W[partial_descriptor_images(ps, pt, C, rows).numpy()]
                          - W[truth[rows.numpy()]], axis=1) / whole.bbox_diagonal()
     assert np.mean(err < 0.1) > 0.5 and np.median(err) < 0.08
+    # a ratio that puts the piece's first eigenvalue beyond the whole's last: refused, named
+    lam_s, lam_t = ps.hk.eigenvalues.double(), pt.hk.eigenvalues.double()
+    tiny = float(lam_s[1] / lam_t[-1]) / 2  # lambda_1 / tiny = 2 lambda_max(whole)
+    assert partial.shared_band(ps, pt, r) is not None and partial.shared_band(ps, pt, tiny) is None
+    with pytest.raises(ValueError, match="spot-front: .*share no band"):
+        partial_descriptor_map(ps, pt, tiny)
 
 
 def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):

@@ -70,6 +70,7 @@ __all__ = [
     "partial_descriptor_map",
     "partial_functional_map",
     "partial_zoomout",
+    "shared_band",
 ]
 
 #: Default distance from the boundary (in units of sqrt(area of the full shape)) inside which
@@ -456,6 +457,12 @@ def partial_descriptor_map(src: PreparedShape, tgt: PreparedShape, ratio: float,
         ``C`` with ``Phi_M C ~ Phi_N[T]`` in the piece's unit-area basis (as
         :func:`partial_zoomout` and :func:`dense_partial_map` use it).
 
+    Raises
+    ------
+    ValueError
+        The two spectra share no band (:func:`shared_band` is None): a piece too small for
+        its eigenpairs, or a wrong area ratio.
+
     Notes
     -----
     Accuracy: coarse, a seed (on the SHREC'16 cuts its samples land within 0.25 sqrt(area)
@@ -476,6 +483,46 @@ def partial_descriptor_map(src: PreparedShape, tgt: PreparedShape, ratio: float,
     return torch.from_numpy(C / math.sqrt(float(ratio)))
 
 
+def _band(lam_s: np.ndarray, lam_t: np.ndarray) -> tuple[float, float] | None:
+    """Log-eigenvalue range both spectra cover (with room for the WKS filters), or None."""
+    pos_s, pos_t = lam_s[lam_s > 1e-8 * lam_s.max()], lam_t[lam_t > 1e-8 * lam_t.max()]
+    if pos_s.size == 0 or pos_t.size == 0:
+        return None
+    lo = math.log(max(pos_s.min(), pos_t.min()))
+    hi = math.log(min(pos_s.max(), pos_t.max()))
+    return (lo, hi) if hi > lo else None
+
+
+def shared_band(src: PreparedShape, tgt: PreparedShape, ratio: float
+                ) -> tuple[float, float] | None:
+    """The log-eigenvalue band a piece and its whole both cover at the whole's scale (the
+    WKS energies of :func:`partial_descriptor_map`), or None: the piece's first eigenvalue
+    (``lambda_1 / r``) lies beyond the whole's last computed one.
+
+    Parameters
+    ----------
+    src, tgt : PreparedShape
+        The piece and the whole.
+    ratio : float
+        ``area(src) / area(tgt)``.
+
+    Returns
+    -------
+    (float, float) or None
+        ``(log lambda_lo, log lambda_hi)``.
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=20)
+    >>> shared_band(s, s, 1.0) is not None, shared_band(s, s, 1e-6)
+    (True, None)
+    """
+    return _band(src.hk.eigenvalues.double().numpy() / float(ratio),
+                 tgt.hk.eigenvalues.double().numpy())
+
+
 def _partial_terms(src: PreparedShape, tgt: PreparedShape, r: float, k: int, n_descr: int,
                    weights: tuple[float, float, float, float], ramp: float,
                    dist: np.ndarray | None) -> tuple:
@@ -491,9 +538,13 @@ def _partial_terms(src: PreparedShape, tgt: PreparedShape, r: float, k: int, n_d
     mass_s = src.hk.vertex_mass.double().numpy() * r
     k = int(min(k, lam_t.size))
     k_s = int(min(lam_s.size, k, max(8, math.ceil(r * k))))
-    pos_s, pos_t = lam_s[lam_s > 1e-8 * lam_s.max()], lam_t[lam_t > 1e-8 * lam_t.max()]
-    lo = math.log(max(pos_s.min(), pos_t.min()))
-    hi = math.log(min(pos_s.max(), pos_t.max()))
+    band = _band(lam_s, lam_t)
+    if band is None:
+        raise ValueError(
+            f"{src.mesh.name or 'source'}: its spectrum (scaled by the area ratio {r:.3g}) and "
+            "the whole's share no band of eigenvalues; the piece is too small for its "
+            "eigenpairs (prepare more, k=...) or the area ratio is wrong")
+    lo, hi = band
     sigma = 7.0 * (hi - lo) / max(2 * n_descr, 1)
     energies = np.linspace(lo + 2 * sigma, hi - 2 * sigma, n_descr)
     d_t = wave_kernel_signature(torch.from_numpy(lam_t), phi_t, energies, sigma,

@@ -42,6 +42,7 @@ from .partial import (
     partial_descriptor_map,
     partial_times,
     partial_zoomout,
+    shared_band,
 )
 from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
 from .quality import SUSPECT_BELOW, MapQuality, map_quality
@@ -242,9 +243,11 @@ def match(
         +0.3 s per TOSCA pair (RESULTS.md, BENCHMARKS.md). With ``partial=True`` (piece
         scale): the rectangular partial functional map of
         :func:`~torchheat.matching.partial.partial_descriptor_map`, refined by rectangular
-        ZoomOut, is one more hypothesis, its images of the 4 deepest source features seed
-        four one-point hypotheses, and every hypothesis's score gets ``- 4 * agreement``
-        with it (SHREC'16 cuts, all 90: 67.9 -> 77.5 % under 0.25).
+        ZoomOut (also with ``zoomout=False``: the coarse map needs it), is one more
+        hypothesis (left out when the spectra share no band,
+        :func:`~torchheat.matching.partial.shared_band`), its images of the 4 deepest source
+        features seed four one-point hypotheses, and every hypothesis's score gets
+        ``- 4 * agreement`` with it (SHREC'16 cuts, all 90: 67.9 -> 77.5 % under 0.25).
     partial : bool
         The source is a piece of the target (a partial or incomplete scan of it, in the same
         units): its time samples are scaled to the target's (one scale for both), landmarks and
@@ -466,6 +469,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     out = []  # (quality, label, corr, agreement or None)
     dense_free = None
     skipped = False
+    pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
     for scale, order in (("piece", kw["partial_landmarks"]), ("unit", None), ("piece", "retry")):
         if order == "retry":
             if max(x[0] for x in out) >= SUSPECT_BELOW or kw["partial_landmarks"] != "deepest":
@@ -477,7 +481,6 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         q = corr.quality.quality if corr.quality is not None else -1.0
         if dense_free is None:
             dense_free = _landmark_free_dense(src, tgt, corr)
-        pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))
         a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
         out.append((q, label, corr, a))
         if len(out) == 1 and a is not None and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH:
@@ -623,9 +626,10 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         e1, g0 = round1(lms0)
         stage.append((e1, len(stage), lms0, g0))
     stage.sort(key=lambda s_: (s_[0], s_[1]))
-    forced = []
+    forced: list[tuple[list, torch.Tensor]] = []  # (landmarks, sample images), all refined
     descr_fmap = None
-    if opt.partial_ratio is not None and opt.descriptor_seed:
+    if (opt.partial_ratio is not None and opt.descriptor_seed
+            and shared_band(src, tgt, opt.partial_ratio) is not None):
         # a piece: the landmark-free partial functional map, refined spectrally (rectangular
         # ZoomOut; the samples are a prefix of its rows), gives one more hypothesis and the
         # images of the deepest source features, each a one-point hypothesis of its own;
@@ -636,13 +640,13 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             g_d = partial_descriptor_images(src, tgt, C_d, samples)
         zo_d = _zoomout_final(src, tgt, samples, g_d, opt)
         descr_fmap = zo_d.C
-        forced.append((float("nan"), len(stage), [], zo_d.images[:samples.numel()]))
+        forced.append(([], zo_d.images[:samples.numel()]))
         feats = src.features[:_PARTIAL_DESCR_LANDMARKS]
         with threads(opt.num_threads):
             q_d = partial_descriptor_images(src, tgt, zo_d.C, feats)
         for p_, q_ in zip(feats.tolist(), q_d.tolist(), strict=True):
             lms0 = [(int(p_), int(q_))]
-            forced.append((float("nan"), len(stage) + len(forced), lms0, round1(lms0)[1]))
+            forced.append((lms0, round1(lms0)[1]))
         timings["descriptor_seed"] = time.perf_counter() - t_d
     if tgt is src:
         # a shape against itself: the identity (energy 0) appears once per seed; keep
@@ -655,7 +659,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     for e1, _, lms0, g0 in stage[keep:]:
         hypotheses.append((lms0, e1, float("nan")))
         hyp_images.append(g0)
-    for _, _, lms0, g0 in stage[:keep] + forced:
+    for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
         f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
         o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
         results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
