@@ -111,7 +111,7 @@ def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
     map (a limb apart), and kept when the agreeing candidate reads orientation-reversing."""
     from types import SimpleNamespace
 
-    from torchheat.matching.pipeline import _descriptor_candidate
+    from torchheat.matching.select import _descriptor_candidate
     from torchheat.matching.prepared import _fps
 
     src, tgt, perm = cow_pair

@@ -165,10 +165,10 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
 def test_partial_auto_keeps_a_clear_piece_map_without_the_unit_scale(spot_piece, monkeypatch):
     # a piece-scale map whose agreement + 0.5 quality reaches the bar is kept at once (the
     # cow reads 0.885, under the default 0.9: lowered here to take that path)
-    from torchheat.matching import pipeline
+    from torchheat.matching import partial_scale
 
     piece, whole, truth = spot_piece
-    monkeypatch.setattr(pipeline, "_PARTIAL_ENOUGH", 0.5)
+    monkeypatch.setattr(partial_scale, "_PARTIAL_ENOUGH", 0.5)
     corr = match(piece, whole, partial=True)
     info = corr.info["partial"]
     assert set(info["quality"]) == {"piece"} and "not tried" in info["chosen_by"]

@@ -149,7 +149,7 @@ def test_symmetry_quality_expects_a_reversing_map():
 def _default_options(**kw):
     import inspect
 
-    from torchheat.matching.pipeline import _Options
+    from torchheat.matching.options import _Options
 
     defaults = {k: p.default for k, p in inspect.signature(match).parameters.items()
                 if p.default is not inspect.Parameter.empty}
@@ -166,7 +166,8 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
     descriptor candidate; without either it cannot (so the test can fail)."""
     from test_matching import mirror_mesh, mirror_permutation
 
-    from torchheat.matching.pipeline import _spectral_choice
+    from torchheat.matching.pipeline import _symmetries_at
+    from torchheat.matching.select import _spectral_choice
 
     V, F = mirror_mesh(3)
     mp = mirror_permutation(V)
@@ -177,7 +178,10 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
     swap = torch.as_tensor(perm[mp])  # source x -> copy of its mirror image
     pool = [{"lms0": [], "g": swap[samples], "energy": 1.0, "orientation": -1.0}]
     opt = _default_options(mirror_hypothesis=mirror, descriptor_seed=descriptor)
-    direct, _, diag = _spectral_choice(S, T, samples, pool, opt, {})
+    direct, _, diag = _spectral_choice(
+        S, T, samples, pool, opt, {},
+        lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
+                                        opt.refine_log_floor))
     truth = torch.as_tensor(perm)[direct["zo"].rows]
     right = float((direct["zo"].images == truth).float().mean())
     if descriptor:

@@ -568,6 +568,18 @@ def _partial_terms(src: PreparedShape, tgt: PreparedShape, r: float, k: int, n_d
     return coef, (ph_s.T * w[None, :]) @ d_s, B, mask, (Dm, Dn), (Om, On), gram
 
 
+#: Radius (units of ``sqrt(area(N))``) within which two maps of a piece agree at a point
+AGREE_RADIUS = 0.15
+
+
+def _agreement(tgt: PreparedShape, images: torch.Tensor, other: torch.Tensor) -> float:
+    """Share of the positions where two arrays of target vertices lie within
+    ``AGREE_RADIUS sqrt(area(N))`` of each other (Euclidean)."""
+    Vt = torch.as_tensor(tgt.mesh.numpy()[0])
+    radius = AGREE_RADIUS * math.sqrt(tgt.mesh.area())
+    return float(((Vt[images] - Vt[other]).norm(dim=1) < radius).double().mean())
+
+
 def partial_descriptor_images(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
                               rows: torch.Tensor) -> torch.Tensor:
     """Target vertices of ``rows`` under a rectangular functional map (exact, brute force).

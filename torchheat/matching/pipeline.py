@@ -8,8 +8,7 @@ import copy
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -18,7 +17,6 @@ import torch
 from ..heat import threads
 from ..mesh import Mesh
 from .background import _Background
-from .fmap import descriptor_functional_map
 from .landmarks import (
     _ambiguity,
     _distinct,
@@ -31,56 +29,35 @@ from .landmarks import (
     dense_map,
     landmark_scores,
 )
+from .options import _Options
 from .orientation import _orientation, _triangles
 from .partial import (
     PARTIAL_MARGIN,
+    _agreement,
     _interior_view,
     _setup,
-    dense_partial_map,
     grow_hypothesis,
     partial_descriptor_images,
     partial_descriptor_map,
     partial_times,
-    partial_zoomout,
     shared_band,
 )
+from .partial_scale import _partial_auto
 from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
-from .quality import SUSPECT_BELOW, MapQuality, map_quality
+from .quality import MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
 from .result import Correspondence, _numbering
-from .zoomout import ZoomOutResult, dense_spectral_map, spectral_map, zoomout
+from .select import (
+    _DESCR_DIRECT,
+    _ZO_SAME,
+    _dense_partial_guarded,
+    _dense_spectral,
+    _descriptor_symmetry,
+    _spectral_choice,
+    _zoomout_final,
+)
 
 __all__ = ["match"]
-
-
-@dataclass(frozen=True)
-class _Options:
-    """The options of :func:`match` that its default pipeline (:func:`_refine`) reads."""
-
-    n_candidates: int
-    refine_samples: int
-    refine_iterations: int
-    orientation: bool
-    score_samples: int | None
-    mirror_hypothesis: bool
-    mirror_energy_ratio: float | None
-    orientation_weight: float
-    refine_log_floor: float | None
-    expand_top: int
-    source_landmarks: int
-    extra_candidates: int
-    refine_keep: int | None
-    orientation_samples: int
-    num_threads: int | None
-    final_map: bool
-    use_hks: bool
-    engine: str
-    zoomout: bool = True
-    zoomout_samples: int = 500
-    zoomout_k: int | None = None
-    zoomout_hypotheses: int = 8
-    partial_ratio: float | None = None  # area(source) / area(target) of a partial match
-    descriptor_seed: bool = True
 
 
 def match(
@@ -308,7 +285,7 @@ def match(
         source, target = _pair_shapes(source)
     if partial and partial_scale == "auto" and method == "refine":
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
-        return _partial_auto(source, target, kw)
+        return _partial_auto(source, target, kw, match)
     if partial_scale not in ("auto", "piece", "unit"):
         raise ValueError(f"unknown partial_scale {partial_scale!r}; use 'auto', 'piece' or "
                          "'unit'")
@@ -442,106 +419,6 @@ def match(
                   "scale": "piece" if part is not None else "unit",
                   "descriptor_fmap": descr_fmap}},
     )
-
-
-def _role_copy(shape: PreparedShape) -> PreparedShape:
-    """A copy whose heat kernel times can be changed; the eigenbasis, the farthest-point
-    samples and the self-symmetry cache are shared."""
-    view = dataclasses.replace(shape, hk=copy.copy(shape.hk))
-    view.__dict__["_sym_cache"] = shape.__dict__.setdefault("_sym_cache", {})
-    if "_fps_cache" in shape.__dict__:
-        view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
-    return view
-
-
-def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict
-                  ) -> Correspondence:
-    """``partial_scale="auto"``: the piece matched at the whole's scale and as a unit-area
-    shape; the map that agrees best with the landmark-free map (plus half its quality) wins
-    (see :func:`match`)."""
-    t0 = time.perf_counter()
-    pkw = {"times": "adaptive" if kw["times"] is None else kw["times"],
-           "max_features": kw["max_features"]}
-    with threads(kw["num_threads"]):
-        src = _as_prepared(source, **pkw)
-        tgt = _as_prepared(target, **pkw)
-    t_prep = time.perf_counter() - t0
-    out = []  # (quality, label, corr, agreement or None)
-    dense_free = None
-    skipped = False
-    pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
-    for scale, order in (("piece", kw["partial_landmarks"]), ("unit", None), ("piece", "retry")):
-        if order == "retry":
-            if max(x[0] for x in out) >= SUSPECT_BELOW or kw["partial_landmarks"] != "deepest":
-                break
-            order = "strongest"  # both maps suspect: once more from the strongest features
-        corr = match(src, _role_copy(tgt), **{**kw, "partial_scale": scale,
-                                              "partial_landmarks": order or "deepest"})
-        label = scale if order in (None, kw["partial_landmarks"]) else f"{scale}, {order}"
-        q = corr.quality.quality if corr.quality is not None else -1.0
-        if dense_free is None:
-            dense_free = _landmark_free_dense(src, tgt, corr)
-        a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
-        out.append((q, label, corr, a))
-        if len(out) == 1 and a is not None and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH:
-            skipped = True  # the piece-scale map is clearly right: the unit scale is not tried
-            break
-    if dense_free is None:
-        best = max(out, key=lambda x: x[0])
-        chosen_by = "quality"
-    else:
-        # measured on SHREC'16 (90 cuts, 49 holes; share of vertices within 0.15 sqrt(area)
-        # of the truth): by quality 0.734 / 0.54, by agreement + 0.5 quality 0.748 / 0.56
-        # (+ 0.25 quality: 0.748 / 0.57, but on the cow of the partial demo the right piece
-        # map is then only 0.02 ahead; with 0.5, 0.16)
-        best = max(out, key=lambda x: x[3] + _PARTIAL_AUTO_QUALITY * x[0])
-        chosen_by = "agreement with the landmark-free map + 0.5 quality" + (
-            " (clear at the piece's scale: unit scale not tried)" if skipped else "")
-    corr = best[2]
-    corr.info["partial"] = {**corr.info["partial"], "chosen_by": chosen_by,
-                            "quality": {x[1]: x[0] for x in out}}
-    if dense_free is not None:
-        corr.info["partial"]["agreement"] = {x[1]: x[3] for x in out}
-    tm = corr.info["timings"]
-    tm["prepare"] = tm.get("prepare", 0.0) + t_prep
-    tm["other_scale"] = sum(x[2].info["timings"].get("total", 0.0) for x in out
-                            if x[2] is not corr)
-    tm["total"] = time.perf_counter() - t0
-    return corr
-
-
-#: Weight of the quality beside the agreement when ``partial_scale="auto"`` chooses a scale
-_PARTIAL_AUTO_QUALITY = 0.5
-#: Source points the agreement of a partial map with the landmark-free map is read on
-_PARTIAL_AUTO_POINTS = 1000
-#: A piece-scale map scoring this (agreement + 0.5 quality) is kept without trying the unit
-#: scale: offline on SHREC'16 (the runs behind _PARTIAL_AUTO_QUALITY) it skipped the unit
-#: scale on 39 % of the cuts and 5 % of the holes and changed no choice (0.8: 61 % / 5 %,
-#: no change either; kept at 0.9 for a margin)
-_PARTIAL_ENOUGH = 0.9
-
-
-def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspondence
-                         ) -> torch.Tensor | None:
-    """Every source vertex mapped by the landmark-free partial functional map of a
-    piece-scale run (refined by rectangular ZoomOut); None if the run has none.
-
-    The landmark-free map is coarse but unbiased: it does not depend on a landmark or on the
-    scale the piece was matched at, so it can arbitrate between the piece-scale and unit-scale
-    maps, whose own qualities are not comparable (a piece with many holes reads a low quality
-    at the whole's scale even when right).
-    """
-    part = corr.info.get("partial") or {}
-    C = part.get("descriptor_fmap")
-    return None if C is None else dense_partial_map(src, tgt, C)
-
-
-def _agreement(tgt: PreparedShape, images: torch.Tensor, other: torch.Tensor) -> float:
-    """Share of the positions where two arrays of target vertices lie within
-    ``_PARTIAL_AGREE_RADIUS sqrt(area(N))`` of each other (Euclidean)."""
-    Vt = torch.as_tensor(tgt.mesh.numpy()[0])
-    radius = _PARTIAL_AGREE_RADIUS * math.sqrt(tgt.mesh.area())
-    return float(((Vt[images] - Vt[other]).norm(dim=1) < radius).double().mean())
 
 
 def _pair_shapes(pair: Any) -> tuple[Any, Any]:
@@ -710,7 +587,10 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         return math.log(max(r["energy"], 1e-300))
 
     if opt.zoomout and tgt is not src and opt.partial_ratio is None:
-        direct, sym, zo_diag = _spectral_choice(src, tgt, samples, good, opt, timings)
+        direct, sym, zo_diag = _spectral_choice(
+            src, tgt, samples, good, opt, timings,
+            lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
+                                            opt.refine_log_floor))
     else:
         descr = [r for r in good if not r["lms0"]] if opt.partial_ratio is not None else []
         if descr and len(good) > 1:
@@ -782,261 +662,13 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
 
 #: A piece's hypotheses are scored ``log(energy) - orientation_weight * orientation -
 #: _PARTIAL_AGREE * agreement``, the agreement being the share of samples whose image lies
-#: within ``_PARTIAL_AGREE_RADIUS sqrt(area(N))`` of the landmark-free map's. On all 90
-#: SHREC'16 cuts (sample images within 0.15 sqrt(area) of the truth, piece scale) the chosen
-#: hypothesis was right on 0.66 of the samples without it, 0.70-0.715 for weights 3-6 (flat),
-#: 0.81 for the best hypothesis of each pair.
+#: within ``AGREE_RADIUS sqrt(area(N))`` of the landmark-free map's (``partial._agreement``).
+#: On all 90 SHREC'16 cuts (sample images within 0.15 sqrt(area) of the truth, piece scale)
+#: the chosen hypothesis was right on 0.66 of the samples without it, 0.70-0.715 for weights
+#: 3-6 (flat), 0.81 for the best hypothesis of each pair.
 _PARTIAL_AGREE = 4.0
-_PARTIAL_AGREE_RADIUS = 0.15
 #: Deepest source features of a piece whose images under the descriptor map seed hypotheses
 _PARTIAL_DESCR_LANDMARKS = 4
-_ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
-_ZO_STEP = 8  # modes added per ZoomOut step
-_ZO_TARGETS = 2000  # farthest-point target samples the ZoomOut steps map to (the dense map: all)
-_ZO_SAME = 0.9  # hypotheses whose sample images agree (within 5 % of the diameter) this often
-_ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct maps read
-# +0.6..0.95; above it the residual decides: on 41 development pairs a left/right + front/back
-# swap reading +0.9 beat the right map reading +0.84 at a lower residual)
-_ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
-
-
-def _distinct_hypotheses(pool: list[dict], Vt: np.ndarray, radius: float, limit: int
-                         ) -> list[dict]:
-    """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
-    of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
-    out: list[dict] = []
-    for r in sorted(pool, key=lambda r: r["energy"]):
-        if all(np.mean(np.linalg.norm(Vt[r["g"].numpy()] - Vt[o["g"].numpy()], axis=1)
-                       <= radius) < _ZO_SAME for o in out):
-            out.append(r)
-        if len(out) >= limit:
-            break
-    return out
-
-
-def _bases(src: PreparedShape, tgt: PreparedShape) -> tuple[torch.Tensor, torch.Tensor]:
-    return src.hk.eigenvectors, tgt.hk.eigenvectors
-
-
-def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tensor,
-                   seed_images: torch.Tensor, opt: _Options, k_start: int = _ZO_START_K
-                   ) -> ZoomOutResult:
-    """ZoomOut of a chosen map to ``opt.zoomout_k`` modes (all eigenpairs by default)."""
-    phi_s, phi_t = _bases(src, tgt)
-    k_end = min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or phi_s.shape[1])
-    rows = _fps(src, opt.zoomout_samples)
-    with threads(opt.num_threads):
-        if opt.partial_ratio is not None:
-            return partial_zoomout(phi_s, phi_t, seed_rows, seed_images, rows,
-                                   opt.partial_ratio, k_start=k_start, k_end=k_end,
-                                   step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
-        return zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
-                       k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
-
-
-def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
-                     pool: list[dict], opt: _Options, timings: dict
-                     ) -> tuple[dict, dict | None]:
-    """Choose the direct and symmetric maps among refined hypotheses by ZoomOut.
-
-    Each distinct hypothesis is upsampled from its 48 sample images to ``_ZO_SELECT_K``
-    modes; a map that is close to an isometry aligns the eigenbases (low residual), a swap
-    of left/right and front/back together does not (measured on TOSCA michael pairs: the
-    heat-kernel energies of such swaps and of the correct map are within 10 %, their ZoomOut
-    residuals 1.2-1.5x apart). The orientation test, read on the ZoomOut map of the 1000
-    samples (+-0.7..0.95 instead of +-0.1..0.5 on the 48-sample maps of humans), tells the
-    direct map from the mirror one. Score: ``log(residual) -+ orientation_weight *
-    orientation``.
-    """
-    t0 = time.perf_counter()
-    Vs, _ = src.mesh.numpy()
-    Vt, _ = tgt.mesh.numpy()
-    cands = _distinct_hypotheses(pool, Vt, 0.05 * tgt.mesh.bbox_diagonal(),
-                                 max(1, opt.zoomout_hypotheses))
-    phi_s, phi_t = _bases(src, tgt)
-    rows = _fps(src, opt.zoomout_samples)
-    tri = _triangles(Vs, rows.numpy())
-    pos = torch.full((src.n,), -1, dtype=torch.int64)
-    pos[rows] = torch.arange(rows.numel())
-    k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
-    targets = _fps(tgt, _ZO_TARGETS)
-    def orient(images: torch.Tensor) -> float:
-        return _orientation(src, tgt, tri, lambda i: images[pos[i]].numpy())
-
-    with threads(opt.num_threads):
-        for r in cands:
-            zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
-                         k_end=k_sel, step=_ZO_STEP, targets=targets)
-            r["zo"] = zo
-            r["zo_orientation"] = orient(zo.images)
-        if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
-            cands += _mirror_partners(src, tgt, rows, pos[samples], cands, opt, k_sel,
-                                      targets, orient)
-        if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
-            t_d = time.perf_counter()
-            cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
-                                           targets, orient)
-            timings["descriptor_seed"] = time.perf_counter() - t_d
-    w = opt.orientation_weight if opt.orientation else 0.0
-
-    def score(r: dict, sign: float) -> float:
-        o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
-        return math.log(max(r["zo"].residual, 1e-300)) - w * o
-
-    direct = min(cands, key=lambda r: score(r, 1.0))
-    rest = [r for r in cands if r is not direct
-            and (not opt.orientation or r["zo_orientation"] < 0)]
-    sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
-    # diagnostics: (rows, images, residual, orientation, chosen, landmark-free) of every
-    # ZoomOut candidate
-    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
-             bool(r.get("descriptor_seed"))) for r in cands]
-    timings["zoomout_select"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for r in (direct, sym):
-        if r is not None and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9):
-            r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
-    timings["zoomout"] = time.perf_counter() - t0
-    return direct, sym, diag
-
-
-_MIRROR_BELOW = -0.5  # ZoomOut candidates reading below this are clean reflections
-_MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measured: no gain
-# on 13 weak SCAPE pairs, and a self-match more per source shape)
-
-
-def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                     at_samples: torch.Tensor, cands: list[dict], opt: _Options, k_sel: int,
-                     targets: torch.Tensor, orient: Callable[[torch.Tensor], float]) -> list[dict]:
-    """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
-    ``T`` (``sigma_N``: the target's intrinsic symmetry), refined by ZoomOut from 16 modes.
-
-    The hypotheses of human poses are often a clean mirror map (orientation -0.8..-0.9) and a
-    left/right + front/back swap (a half-turn about the body axis, orientation-preserving),
-    with the direct map missing (measured on the failing SCAPE and TOSCA michael pairs); the
-    mirror map's partner is the direct map. Partners whose sample images agree with an
-    existing candidate's (as in :func:`_distinct_hypotheses`) are dropped. ``at_samples``:
-    positions of the refinement samples in ``rows`` (the partners' ``"g"``).
-    """
-    Vt, _ = tgt.mesh.numpy()
-    radius = 0.05 * tgt.mesh.bbox_diagonal()
-    phi_s, phi_t = _bases(src, tgt)
-    out: list[dict] = []
-    src_syms = _symmetries_at(src, rows, opt.use_hks, opt.engine, opt.n_candidates,
-                              opt.refine_log_floor) if _MIRROR_SOURCE else []
-    for r in [c for c in cands if c["zo_orientation"] < _MIRROR_BELOW]:
-        # sigma_N o T for each target symmetry
-        seeds = _symmetries_at(tgt, r["zo"].images, opt.use_hks, opt.engine,
-                               opt.n_candidates, opt.refine_log_floor)
-        for ss in src_syms:  # T o sigma_M, read from T's functional map
-            j = spectral_map(phi_s, phi_t[targets], r["zo"].C, ss)[1]
-            seeds.append(targets[j])
-        for seed in seeds:
-            zo = zoomout(phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K, k_end=k_sel,
-                         step=_ZO_STEP, targets=targets)
-            im = zo.images.numpy()
-            if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
-                           <= radius) >= _ZO_SAME for o in cands + out):
-                continue
-            out.append({"lms0": [], "g": zo.images[at_samples], "zo": zo,
-                        "energy": float("nan"), "orientation": float("nan"),
-                        "zo_orientation": orient(zo.images)})
-    return out
-
-
-_DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
-_DESCR_VARIANT = 0.65  # agreement (samples within 5 % of the diameter) that makes the
-_DESCR_DIRECT = 0.3  # descriptor candidate a variant of a candidate reading this orientation
-
-
-def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Tensor,
-                         tri: tuple, samples: torch.Tensor, refiner: _Refiner, opt: _Options
-                         ) -> dict:
-    """A shape's intrinsic symmetry from no landmark, as a hypothesis: the
-    orientation-reversing functional map of its wave kernel signatures
-    (:func:`~torchheat.matching.fmap.descriptor_functional_map`, ``reversing=True``), its images
-    of the refinement samples refined by correspondence augmentation like every hypothesis.
-    ``rows``/``pos``/``tri``: the refinement rows (samples first), their positions and the
-    orientation triangles of :func:`_refine`."""
-    phi = shape.hk.eigenvectors
-    C = descriptor_functional_map(shape, shape, k=min(_DESCR_K, phi.shape[1]), reversing=True)
-    g0 = spectral_map(phi, phi, C, samples)[1]
-    f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
-    o = _orientation(shape, shape, tri, lambda i: f_rows[pos[i]].numpy())
-    return {"lms0": [], "g": g, "energy": energy, "orientation": o, "descriptor_seed": True}
-
-
-def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                          at_samples: torch.Tensor, cands: list[dict], k_sel: int,
-                          targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
-                          ) -> list[dict]:
-    """One more ZoomOut candidate that no landmark started: the functional map of the
-    shapes' wave kernel signatures with the orientation-preserving term
-    (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
-    ZoomOut from ``_DESCR_K`` to ``k_sel`` modes. Dropped when its images agree with an
-    existing candidate's (as in :func:`_distinct_hypotheses`)."""
-    phi_s, phi_t = _bases(src, tgt)
-    k = min(_DESCR_K, k_sel)
-    C = descriptor_functional_map(src, tgt, k=k)
-    # seeded like every other candidate: its images of the refinement samples, from
-    # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
-    # than a comparable landmark hypothesis: measured, it then beat right maps)
-    seed_rows = rows[at_samples]
-    _, j = spectral_map(phi_s, phi_t[targets], C, seed_rows)
-    zo = zoomout(phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K, k_end=k_sel,
-                 step=_ZO_STEP, targets=targets)
-    Vt, _ = tgt.mesh.numpy()
-    radius = 0.05 * tgt.mesh.bbox_diagonal()
-    im = zo.images.numpy()
-
-    agree = [float(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
-                           <= radius)) for o in cands]
-    if any(a >= _ZO_SAME for a in agree):
-        return []
-    # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
-    # out: measured on TOSCA, such variants won at a lower ZoomOut residual while less right
-    # (12 pairs: 95-100 % -> 63-93 %); where the descriptor map was the right one, no direct
-    # landmark candidate agreed with it on more than 45 % of the samples
-    if any(o["zo_orientation"] >= _DESCR_DIRECT and a >= _DESCR_VARIANT
-           for o, a in zip(cands, agree, strict=True)):
-        return []
-    return [{"lms0": [], "g": zo.images[at_samples], "zo": zo, "energy": float("nan"),
-             "orientation": float("nan"), "zo_orientation": orient(zo.images),
-             "descriptor_seed": True}]
-
-
-def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,
-                           opt: _Options, expect: int, timings: dict
-                           ) -> Callable[[], torch.Tensor]:
-    """A piece's dense map, deferred: the heat-kernel map of the chosen hypothesis or its
-    rectangular ZoomOut, whichever reads the better partial quality (no ground truth)."""
-
-    def compute() -> torch.Tensor:
-        t0 = time.perf_counter()
-        with threads(opt.num_threads):
-            maps = {"heat kernel": refiner.augment(r["g"], None, 1)[0],
-                    "zoomout": dense_partial_map(src, tgt, r["zo"].C, opt.num_threads)}
-        qual = {k: map_quality(src, tgt, m, expect=expect, ratio=opt.partial_ratio).quality
-                for k, m in maps.items()}
-        r["partial_dense"] = max(qual, key=lambda k: qual[k])
-        r["partial_dense_quality"] = qual
-        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
-        return maps[r["partial_dense"]]
-
-    return compute
-
-
-def _dense_spectral(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
-                    num_threads: int | None, timings: dict) -> Callable[[], torch.Tensor]:
-    """The dense map of a functional map, deferred (as :func:`_dense_final`)."""
-
-    def compute() -> torch.Tensor:
-        t0 = time.perf_counter()
-        out = dense_spectral_map(src, tgt, C, num_threads)
-        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
-        return out
-
-    return compute
 
 
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis

@@ -1,0 +1,288 @@
+"""Choosing among refined hypotheses by spectral refinement, and the dense maps of the chosen.
+
+Every distinct hypothesis of :func:`torchheat.match` (its images of the refinement samples) is
+upsampled by ZoomOut (:mod:`.zoomout`) to ``_ZO_SELECT_K`` modes; the candidates are joined by
+the mirror partners of the orientation-reversing ones (``sigma_N o T``, ``sigma_N`` the target's
+intrinsic symmetry, given by the caller) and by the landmark-free descriptor map (:mod:`.fmap`);
+``log(residual) - orientation_weight * orientation`` decides. The chosen maps are refined to
+every mode and made dense when first asked for.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ..heat import threads
+from .fmap import descriptor_functional_map
+from .options import _Options
+from .orientation import _orientation, _triangles
+from .partial import dense_partial_map, partial_zoomout
+from .prepared import PreparedShape, _fps
+from .quality import map_quality
+from .refine import _Refiner
+from .zoomout import ZoomOutResult, dense_spectral_map, spectral_map, zoomout
+
+_ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
+_ZO_STEP = 8  # modes added per ZoomOut step
+
+
+_ZO_TARGETS = 2000  # farthest-point target samples the ZoomOut steps map to (the dense map: all)
+_ZO_SAME = 0.9  # hypotheses whose sample images agree (within 5 % of the diameter) this often
+
+
+_ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct maps read
+# +0.6..0.95; above it the residual decides: on 41 development pairs a left/right + front/back
+# swap reading +0.9 beat the right map reading +0.84 at a lower residual)
+_ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
+
+
+def _distinct_hypotheses(pool: list[dict], Vt: np.ndarray, radius: float, limit: int
+                         ) -> list[dict]:
+    """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
+    of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
+    out: list[dict] = []
+    for r in sorted(pool, key=lambda r: r["energy"]):
+        if all(np.mean(np.linalg.norm(Vt[r["g"].numpy()] - Vt[o["g"].numpy()], axis=1)
+                       <= radius) < _ZO_SAME for o in out):
+            out.append(r)
+        if len(out) >= limit:
+            break
+    return out
+
+
+def _bases(src: PreparedShape, tgt: PreparedShape) -> tuple[torch.Tensor, torch.Tensor]:
+    return src.hk.eigenvectors, tgt.hk.eigenvectors
+
+
+def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tensor,
+                   seed_images: torch.Tensor, opt: _Options, k_start: int = _ZO_START_K
+                   ) -> ZoomOutResult:
+    """ZoomOut of a chosen map to ``opt.zoomout_k`` modes (all eigenpairs by default)."""
+    phi_s, phi_t = _bases(src, tgt)
+    k_end = min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or phi_s.shape[1])
+    rows = _fps(src, opt.zoomout_samples)
+    with threads(opt.num_threads):
+        if opt.partial_ratio is not None:
+            return partial_zoomout(phi_s, phi_t, seed_rows, seed_images, rows,
+                                   opt.partial_ratio, k_start=k_start, k_end=k_end,
+                                   step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
+        return zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
+                       k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
+
+
+#: ``symmetries_at(shape, vertices)``: the images of ``vertices`` under each of the shape's
+#: intrinsic (orientation-reversing) self-maps (the pipeline's self-match, cached per shape)
+SymmetriesAt = Callable[[PreparedShape, torch.Tensor], list[torch.Tensor]]
+
+
+def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
+                     pool: list[dict], opt: _Options, timings: dict,
+                     symmetries_at: SymmetriesAt) -> tuple[dict, dict | None, list]:
+    """Choose the direct and symmetric maps among refined hypotheses by ZoomOut.
+
+    Each distinct hypothesis is upsampled from its 48 sample images to ``_ZO_SELECT_K``
+    modes; a map that is close to an isometry aligns the eigenbases (low residual), a swap
+    of left/right and front/back together does not (measured on TOSCA michael pairs: the
+    heat-kernel energies of such swaps and of the correct map are within 10 %, their ZoomOut
+    residuals 1.2-1.5x apart). The orientation test, read on the ZoomOut map of the 1000
+    samples (+-0.7..0.95 instead of +-0.1..0.5 on the 48-sample maps of humans), tells the
+    direct map from the mirror one. Score: ``log(residual) -+ orientation_weight *
+    orientation``.
+    """
+    t0 = time.perf_counter()
+    Vs, _ = src.mesh.numpy()
+    Vt, _ = tgt.mesh.numpy()
+    cands = _distinct_hypotheses(pool, Vt, 0.05 * tgt.mesh.bbox_diagonal(),
+                                 max(1, opt.zoomout_hypotheses))
+    phi_s, phi_t = _bases(src, tgt)
+    rows = _fps(src, opt.zoomout_samples)
+    tri = _triangles(Vs, rows.numpy())
+    pos = torch.full((src.n,), -1, dtype=torch.int64)
+    pos[rows] = torch.arange(rows.numel())
+    k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
+    targets = _fps(tgt, _ZO_TARGETS)
+    def orient(images: torch.Tensor) -> float:
+        return _orientation(src, tgt, tri, lambda i: images[pos[i]].numpy())
+
+    with threads(opt.num_threads):
+        for r in cands:
+            zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
+                         k_end=k_sel, step=_ZO_STEP, targets=targets)
+            r["zo"] = zo
+            r["zo_orientation"] = orient(zo.images)
+        if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
+            cands += _mirror_partners(src, tgt, rows, pos[samples], cands, opt, k_sel,
+                                      targets, orient, symmetries_at)
+        if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
+            t_d = time.perf_counter()
+            cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
+                                           targets, orient)
+            timings["descriptor_seed"] = time.perf_counter() - t_d
+    w = opt.orientation_weight if opt.orientation else 0.0
+
+    def score(r: dict, sign: float) -> float:
+        o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
+        return math.log(max(r["zo"].residual, 1e-300)) - w * o
+
+    direct = min(cands, key=lambda r: score(r, 1.0))
+    rest = [r for r in cands if r is not direct
+            and (not opt.orientation or r["zo_orientation"] < 0)]
+    sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
+    # diagnostics: (rows, images, residual, orientation, chosen, landmark-free) of every
+    # ZoomOut candidate
+    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
+             bool(r.get("descriptor_seed"))) for r in cands]
+    timings["zoomout_select"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for r in (direct, sym):
+        if r is not None and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9):
+            r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
+    timings["zoomout"] = time.perf_counter() - t0
+    return direct, sym, diag
+
+
+_MIRROR_BELOW = -0.5  # ZoomOut candidates reading below this are clean reflections
+_MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measured: no gain
+
+
+# on 13 weak SCAPE pairs, and a self-match more per source shape)
+
+
+def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                     at_samples: torch.Tensor, cands: list[dict], opt: _Options, k_sel: int,
+                     targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
+                     symmetries_at: SymmetriesAt) -> list[dict]:
+    """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
+    ``T`` (``sigma_N``: the target's intrinsic symmetry), refined by ZoomOut from 16 modes.
+
+    The hypotheses of human poses are often a clean mirror map (orientation -0.8..-0.9) and a
+    left/right + front/back swap (a half-turn about the body axis, orientation-preserving),
+    with the direct map missing (measured on the failing SCAPE and TOSCA michael pairs); the
+    mirror map's partner is the direct map. Partners whose sample images agree with an
+    existing candidate's (as in :func:`_distinct_hypotheses`) are dropped. ``at_samples``:
+    positions of the refinement samples in ``rows`` (the partners' ``"g"``).
+    """
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    phi_s, phi_t = _bases(src, tgt)
+    out: list[dict] = []
+    src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
+    for r in [c for c in cands if c["zo_orientation"] < _MIRROR_BELOW]:
+        # sigma_N o T for each target symmetry
+        seeds = symmetries_at(tgt, r["zo"].images)
+        for ss in src_syms:  # T o sigma_M, read from T's functional map
+            j = spectral_map(phi_s, phi_t[targets], r["zo"].C, ss)[1]
+            seeds.append(targets[j])
+        for seed in seeds:
+            zo = zoomout(phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K, k_end=k_sel,
+                         step=_ZO_STEP, targets=targets)
+            im = zo.images.numpy()
+            if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
+                           <= radius) >= _ZO_SAME for o in cands + out):
+                continue
+            out.append({"lms0": [], "g": zo.images[at_samples], "zo": zo,
+                        "energy": float("nan"), "orientation": float("nan"),
+                        "zo_orientation": orient(zo.images)})
+    return out
+
+
+_DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
+_DESCR_VARIANT = 0.65  # agreement (samples within 5 % of the diameter) that makes the
+
+
+_DESCR_DIRECT = 0.3  # descriptor candidate a variant of a candidate reading this orientation
+
+
+def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Tensor,
+                         tri: tuple, samples: torch.Tensor, refiner: _Refiner, opt: _Options
+                         ) -> dict:
+    """A shape's intrinsic symmetry from no landmark, as a hypothesis: the
+    orientation-reversing functional map of its wave kernel signatures
+    (:func:`~torchheat.matching.fmap.descriptor_functional_map`, ``reversing=True``), its images
+    of the refinement samples refined by correspondence augmentation like every hypothesis.
+    ``rows``/``pos``/``tri``: the refinement rows (samples first), their positions and the
+    orientation triangles of the pipeline's ``_refine``."""
+    phi = shape.hk.eigenvectors
+    C = descriptor_functional_map(shape, shape, k=min(_DESCR_K, phi.shape[1]), reversing=True)
+    g0 = spectral_map(phi, phi, C, samples)[1]
+    f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
+    o = _orientation(shape, shape, tri, lambda i: f_rows[pos[i]].numpy())
+    return {"lms0": [], "g": g, "energy": energy, "orientation": o, "descriptor_seed": True}
+
+
+def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                          at_samples: torch.Tensor, cands: list[dict], k_sel: int,
+                          targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
+                          ) -> list[dict]:
+    """One more ZoomOut candidate that no landmark started: the functional map of the
+    shapes' wave kernel signatures with the orientation-preserving term
+    (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
+    ZoomOut from ``_DESCR_K`` to ``k_sel`` modes. Dropped when its images agree with an
+    existing candidate's (as in :func:`_distinct_hypotheses`)."""
+    phi_s, phi_t = _bases(src, tgt)
+    k = min(_DESCR_K, k_sel)
+    C = descriptor_functional_map(src, tgt, k=k)
+    # seeded like every other candidate: its images of the refinement samples, from
+    # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
+    # than a comparable landmark hypothesis: measured, it then beat right maps)
+    seed_rows = rows[at_samples]
+    _, j = spectral_map(phi_s, phi_t[targets], C, seed_rows)
+    zo = zoomout(phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K, k_end=k_sel,
+                 step=_ZO_STEP, targets=targets)
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    im = zo.images.numpy()
+
+    agree = [float(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
+                           <= radius)) for o in cands]
+    if any(a >= _ZO_SAME for a in agree):
+        return []
+    # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
+    # out: measured on TOSCA, such variants won at a lower ZoomOut residual while less right
+    # (12 pairs: 95-100 % -> 63-93 %); where the descriptor map was the right one, no direct
+    # landmark candidate agreed with it on more than 45 % of the samples
+    if any(o["zo_orientation"] >= _DESCR_DIRECT and a >= _DESCR_VARIANT
+           for o, a in zip(cands, agree, strict=True)):
+        return []
+    return [{"lms0": [], "g": zo.images[at_samples], "zo": zo, "energy": float("nan"),
+             "orientation": float("nan"), "zo_orientation": orient(zo.images),
+             "descriptor_seed": True}]
+
+
+def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,
+                           opt: _Options, expect: int, timings: dict
+                           ) -> Callable[[], torch.Tensor]:
+    """A piece's dense map, deferred: the heat-kernel map of the chosen hypothesis or its
+    rectangular ZoomOut, whichever reads the better partial quality (no ground truth)."""
+
+    def compute() -> torch.Tensor:
+        t0 = time.perf_counter()
+        with threads(opt.num_threads):
+            maps = {"heat kernel": refiner.augment(r["g"], None, 1)[0],
+                    "zoomout": dense_partial_map(src, tgt, r["zo"].C, opt.num_threads)}
+        qual = {k: map_quality(src, tgt, m, expect=expect, ratio=opt.partial_ratio).quality
+                for k, m in maps.items()}
+        r["partial_dense"] = max(qual, key=lambda k: qual[k])
+        r["partial_dense_quality"] = qual
+        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
+        return maps[r["partial_dense"]]
+
+    return compute
+
+
+def _dense_spectral(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
+                    num_threads: int | None, timings: dict) -> Callable[[], torch.Tensor]:
+    """The dense map of a functional map, deferred (as :func:`.refine._dense_final`)."""
+
+    def compute() -> torch.Tensor:
+        t0 = time.perf_counter()
+        out = dense_spectral_map(src, tgt, C, num_threads)
+        timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
+        return out
+
+    return compute
