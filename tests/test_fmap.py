@@ -111,8 +111,8 @@ def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
     map (a limb apart), and kept when the agreeing candidate reads orientation-reversing."""
     from types import SimpleNamespace
 
-    from torchheat.matching.select import _descriptor_candidate
     from torchheat.matching.prepared import _fps
+    from torchheat.matching.select import _descriptor_candidate
 
     src, tgt, perm = cow_pair
     rows = _fps(src, 500)

@@ -554,3 +554,87 @@ def test_fast_off_reader_matches_trimesh_or_defers(tmp_path):
     ):
         (tmp_path / name).write_text(text)
         assert _parse_off(tmp_path / name) is None, name
+
+
+def _holed_sphere(seed: int = 0):
+    """An icosphere with three disjoint holes punched out (the faces around three vertices)."""
+    m = trimesh.creation.icosphere(3)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    centres = [0, 40, 200]
+    drop = np.zeros(len(F), dtype=bool)
+    for c in centres:  # the one-ring, and for the last one the two-ring too
+        ring = np.isin(F, [c]).any(axis=1)
+        if c == 200:
+            ring = np.isin(F, np.unique(F[ring])).any(axis=1)
+        drop |= ring
+    F = F[~drop]
+    used = np.unique(F)  # renumber: the removed centres leave no unreferenced vertex
+    new = np.full(len(V), -1)
+    new[used] = np.arange(used.size)
+    return V[used], new[F]
+
+
+def test_boundary_loops_follow_the_face_orientation():
+    from torchheat.topology import boundary_loops
+
+    V, F = _holed_sphere()
+    loops = boundary_loops(F, len(V))
+    assert len(loops) == 3
+    assert sum(len(lp) for lp in loops) == len(Mesh(V, F).boundary_edges())
+    assert all(np.unique(lp).size == lp.size for lp in loops)
+    face_edges = {(int(a), int(b)) for f in F for a, b in ((f[0], f[1]), (f[1], f[2]),
+                                                           (f[2], f[0]))}
+    for lp in loops:  # every step is a face edge whose reverse no face has
+        for a, b in zip(lp, np.roll(lp, -1), strict=True):
+            assert (a, b) in face_edges and (b, a) not in face_edges
+    assert boundary_loops(np.asarray(trimesh.creation.icosphere(1).faces), 42) == []
+
+
+@pytest.mark.parametrize("rings", [False, True])
+def test_fill_holes_closes_every_loop_consistently(rings):
+    from torchheat.topology import boundary_loops, fill_holes
+
+    V, F = _holed_sphere()
+    V2, F2 = fill_holes(V, F, rings=rings)
+    n = len(V)
+    assert np.array_equal(V2[:n], V) and np.array_equal(F2[:len(F)], F)
+    assert boundary_loops(F2, len(V2)) == []
+    # a closed, consistently oriented surface: every directed edge once, its reverse once
+    he = np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]])
+    keys = he[:, 0] * len(V2) + he[:, 1]
+    assert np.unique(keys).size == keys.size
+    assert np.isin(he[:, 1] * len(V2) + he[:, 0], keys).all()
+    E = np.unique(np.sort(he, axis=1), axis=0)
+    assert len(V2) - len(E) + len(F2) == 2  # a sphere again
+    Mesh(V2, F2, name="filled")  # valid: no degenerate or non-manifold faces
+    loops = boundary_loops(F, n)
+    if not rings:
+        assert len(V2) == n + 3
+        for c in range(n, len(V2)):  # each new vertex is the centroid of its loop
+            ring = np.unique(F2[(F2 == c).any(axis=1)])
+            np.testing.assert_allclose(V2[c], V[ring[ring < n]].mean(0), atol=1e-12)
+    else:  # the two-ring hole (12 edges, radius ~2 edges) gets a ring, the one-rings do not
+        assert len(V2) == n + 3 + max(len(lp) for lp in loops)
+        # the patches' edges stay about as long as the loops' (a single fan's spokes reach
+        # across the two-ring hole: about twice that)
+        lens = np.linalg.norm(V2[E[:, 0]] - V2[E[:, 1]], axis=1)
+        loop_edges = max(np.linalg.norm(V[lp] - V[np.roll(lp, -1)], axis=1).max()
+                         for lp in loops)
+        assert lens[(E >= n).any(axis=1)].max() <= 1.5 * loop_edges
+
+
+def test_fill_holes_cuts_a_pinched_loop_into_simple_ones():
+    from torchheat.topology import boundary_loops, fill_holes
+
+    # two squares of two triangles each, touching at vertex 2; leaving 2 the walk takes the
+    # lower-numbered edge 2 -> 1 into the second square, so one walk visits 2 twice
+    V = np.array([[0.0, 0, 0], [2, 1, 0], [1, 1, 0], [2, 2, 0], [1, 2, 0], [1, 0, 0],
+                  [0, 1, 0]])
+    F = np.array([[0, 5, 2], [0, 2, 6], [2, 1, 3], [2, 3, 4]])
+    (loop,) = boundary_loops(F, len(V))
+    assert len(loop) == 8 and np.count_nonzero(loop == 2) == 2
+    V2, F2 = fill_holes(V, F)
+    assert len(V2) == len(V) + 2  # one fan per simple loop
+    he = np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]])
+    edges, counts = np.unique(np.sort(he, axis=1), axis=0, return_counts=True)
+    assert (counts == 2).all()  # closed, every edge manifold

@@ -152,9 +152,8 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     # one scale: the ratio the piece's times are divided by is its true share of the area
     info = corr.info["partial"]
     assert info["ratio"] == pytest.approx(piece.area() / whole.area(), rel=1e-9)
-    assert set(info["quality"]) >= {"piece", "unit"}
-    # the scale is chosen by agreement with the landmark-free map + 0.5 quality (measured
-    # here: piece 0.445 + 0.5 * 0.88, unit 0.562 + 0.5 * 0.33)
+    assert set(info["quality"]) >= {"piece", "filled"}
+    # the scale is chosen by agreement with the landmark-free map + 0.5 quality
     qual, agree = info["quality"], info["agreement"]
     assert set(agree) == set(qual) and all(0.0 <= a <= 1.0 for a in agree.values())
     won = max(qual, key=lambda s: agree[s] + 0.5 * qual[s])
@@ -176,6 +175,48 @@ def test_partial_auto_keeps_a_clear_piece_map_without_the_unit_scale(spot_piece,
     W, _ = whole.numpy()
     err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
     assert np.mean(err < 0.05) > 0.9
+
+
+@pytest.fixture(scope="module")
+def spot_holed():
+    """The cow Spot with eight holes punched in it (the two-rings of far-apart vertices,
+    ~13 % of the area), and the whole, moved and permuted."""
+    from torchheat.descriptors import farthest_point_sampling
+
+    M = load_mesh(DATA / "spot.obj")
+    V, F = M.numpy()
+    W, G, perm = moved_copy(V, F, seed=7)
+    seeds = farthest_point_sampling(V, 8).numpy()
+    ring = np.unique(F[np.isin(F, seeds).any(axis=1)])
+    holed = Mesh(V, F[~np.isin(F, ring).any(axis=1)], name="spot-holed",
+                 largest_component=True)
+    return holed, Mesh(W, G, name="spot-moved"), perm[holed.vertex_map.numpy()]
+
+
+def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed):
+    from torchheat.matching.partial_scale import filled_piece
+    from torchheat.topology import boundary_loops
+
+    holed, whole, truth = spot_holed
+    filled = filled_piece(holed)
+    V, F = filled.numpy()
+    assert len(boundary_loops(holed.numpy()[1], holed.n_vertices)) == 8
+    assert boundary_loops(F, len(V)) == [] and np.array_equal(V[:holed.n_vertices],
+                                                               holed.numpy()[0])
+    assert filled_piece(whole) is whole  # closed: nothing to fill
+    corr = match(holed, whole, partial=True, partial_scale="filled")
+    assert corr.map.shape == (holed.n_vertices,)  # the piece's own vertices only
+    assert all(a < holed.n_vertices for a, _ in corr.landmarks)
+    assert corr.info["partial"]["scale"] == "filled"
+    assert corr.info["partial"]["filled_vertices"] == filled.n_vertices - holed.n_vertices
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.05) > 0.9, np.mean(err < 0.05)
+    assert not corr.suspect
+    # the symmetric alternative is the piece's too
+    assert not corr.has_symmetric_map or corr.symmetric_map.shape == (holed.n_vertices,)
+    with pytest.raises(ValueError, match="'filled'"):
+        match(holed, whole, partial=True, partial_scale="holes")
 
 
 def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece):
@@ -215,6 +256,11 @@ def test_cli_partial(spot_piece, tmp_path, capsys):
     assert np.mean(err < 0.05) > 0.9
     assert main(["match", str(a), str(b), "-o", str(out), "--partial-margin", "0.1"]) == 1
     assert "--partial-margin needs --partial" in capsys.readouterr().err
+    assert main(["match", str(a), str(b), "-o", str(out), "--partial-scale", "piece"]) == 1
+    assert "--partial-scale needs --partial" in capsys.readouterr().err
+    assert main(["match", str(a), str(b), "-o", str(out), "--partial", "--partial-scale",
+                 "piece"]) == 0
+    assert "piece" in capsys.readouterr().out
     assert main(["match", str(b), str(a), "-o", str(out), "--partial"]) == 1
     assert "swap the shapes" in capsys.readouterr().err
 

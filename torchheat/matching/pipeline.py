@@ -42,7 +42,7 @@ from .partial import (
     partial_times,
     shared_band,
 )
-from .partial_scale import _partial_auto
+from .partial_scale import _match_filled, _partial_auto
 from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
 from .quality import MapQuality, map_quality
 from .refine import _dense_final, _is_identity, _Refiner
@@ -234,12 +234,14 @@ def match(
     partial_margin : float
         (``partial=True``) Distance from the boundary, in units of ``sqrt(area(target))``,
         inside which no landmark or sample is taken.
-    partial_scale : {"auto", "piece", "unit"}
+    partial_scale : {"auto", "piece", "filled", "unit"}
         (``partial=True``) ``"piece"``: the piece at the whole's scale, as described above (what
-        suits a piece cut off by planes). ``"unit"``: the piece normalised to unit area on its
-        own and matched as a whole shape (what suits a surface with many small holes: the heat
-        the holes would have held spreads over the rest, so the large times still agree).
-        ``"auto"`` (default): both; the map returned maximises its agreement with the
+        suits a piece cut off by planes). ``"filled"``: every boundary loop of the piece closed
+        by a patch (:func:`torchheat.topology.fill_holes`), the result matched as a whole shape
+        and the map of the piece's own vertices returned (what suits a scan with holes: closed,
+        it is nearly the whole surface). ``"unit"``: the holed piece normalised to unit area
+        and matched as a whole shape, holes open (the second way before ``"filled"``).
+        ``"auto"`` (default): piece and filled; the map returned maximises its agreement with the
         landmark-free partial functional map (share of 1000 source points mapped within 0.15
         sqrt(area) of it) plus half its partial quality (rectangular functional map defect and
         orientation; no ground truth), or the quality alone with ``descriptor_seed=False``;
@@ -286,9 +288,12 @@ def match(
     if partial and partial_scale == "auto" and method == "refine":
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
         return _partial_auto(source, target, kw, match)
-    if partial_scale not in ("auto", "piece", "unit"):
-        raise ValueError(f"unknown partial_scale {partial_scale!r}; use 'auto', 'piece' or "
-                         "'unit'")
+    if partial and partial_scale == "filled":
+        kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
+        return _match_filled(source, target, kw, match)
+    if partial_scale not in ("auto", "piece", "unit", "filled"):
+        raise ValueError(f"unknown partial_scale {partial_scale!r}; use 'auto', 'piece', "
+                         "'filled' or 'unit'")
     if method not in ("refine", "paper"):
         raise ValueError(f"unknown method {method!r}; use 'refine' or 'paper'")
     if engine not in ("auto", "cdist", "kdtree"):
