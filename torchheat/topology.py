@@ -266,7 +266,9 @@ def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
     A loop that passes through a vertex twice (a pinched boundary) is cut there into simple
     loops, each filled on its own (one patch per loop keeps every edge manifold); a chain that
     does not close is left open. The patch is a cone, not a fair surface: it restores the
-    topology and roughly the area, not the geometry of what is missing. Cost: ``O(m log m)``.
+    topology and roughly the area, not the geometry of what is missing. Cost: ``O(m log m)``
+    plus a Python step per boundary edge (30 ms for a 9k-vertex piece with 33 holes,
+    BENCHMARKS.md).
 
     Examples
     --------
@@ -279,9 +281,15 @@ def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
     F = np.asarray(F, dtype=np.int64)
     n = len(V)
     he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    closing = set(map(tuple, he.tolist()))
-    loops = [part for loop in boundary_loops(F, n)
-             if (int(loop[-1]), int(loop[0])) in closing for part in _simple_loops(loop)]
+    keys = np.sort(he[:, 0] * np.int64(n) + he[:, 1])
+
+    def closes(loop: np.ndarray) -> bool:  # the edge back to the first vertex is a face's
+        k = int(loop[-1]) * n + int(loop[0])
+        i = int(np.searchsorted(keys, k))
+        return i < keys.size and int(keys[i]) == k
+
+    loops = [part for loop in boundary_loops(F, n) if closes(loop)
+             for part in _simple_loops(loop)]
     added: list[np.ndarray] = []  # new vertices, in blocks
     faces: list[np.ndarray] = []
     count = n
