@@ -250,6 +250,11 @@ def test_cli_partial(spot_piece, tmp_path, capsys):
     out = tmp_path / "map.txt"
     assert main(["match", str(a), str(b), "-o", str(out), "--partial", "--report",
                  str(tmp_path / "r.json")]) == 0
+    import json
+
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["partial"]["scale"] in rep["partial"]["quality"]  # the way kept, and its reading
+    assert rep["partial"]["ratio"] == pytest.approx(piece.area() / whole.area(), rel=1e-6)
     f = np.loadtxt(out, dtype=np.int64)
     W, _ = whole.numpy()
     err = np.linalg.norm(W[f] - W[truth], axis=1) / whole.bbox_diagonal()

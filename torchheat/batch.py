@@ -584,10 +584,9 @@ tosca_remeshed_5k_symmetry`).
         "suspect": None if quality is None else bool(quality.suspect),
         "defect": None if quality is None else quality.defect,
     }
-    part = corr.info.get("partial")
+    part = corr.partial_summary()
     if part:  # how a partial match was made: its area ratio, the way kept and why
-        rec["partial"] = {k: part[k] for k in ("ratio", "scale", "chosen_by", "agreement",
-                                                "quality", "closed_quality") if k in part}
+        rec["partial"] = part
     if keep_map:
         rec["_arrays"] = {"map": fmap, "gt_src": gs,
                           "errors": direct if flip_err is None else flip_err}

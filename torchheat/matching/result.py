@@ -130,7 +130,18 @@ class Correspondence:
             **({} if q is None else q.as_dict()),
             "symmetric_map": self.has_symmetric_map,
             "timings": {k: float(v) for k, v in self.info.get("timings", {}).items()},
+            **({"partial": part} if (part := self.partial_summary()) else {}),
         }
+
+    def partial_summary(self) -> dict | None:
+        """How a partial match was made (JSON-able): the area ratio, the way kept
+        (``"piece"``, ``"filled"`` or ``"unit"``), why, and each way's agreement and quality;
+        None for a full match."""
+        part = self.info.get("partial")
+        if not part:
+            return None
+        return {k: part[k] for k in ("ratio", "scale", "chosen_by", "agreement", "quality",
+                                     "closed_quality") if k in part}
 
     @property
     def map(self) -> torch.Tensor:
