@@ -161,6 +161,14 @@ def restrict_faces(F: np.ndarray, kept: np.ndarray, n: int) -> np.ndarray:
     return np.ascontiguousarray(new_index[F[keep[F[:, 0]]]])
 
 
+def _boundary_halfedges(F: np.ndarray, n: int) -> np.ndarray:
+    """Face edges ``a -> b`` whose reverse no face has, int64 ``(b, 2)``, sorted by ``(a, b)``."""
+    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+    key = he[:, 0] * np.int64(n) + he[:, 1]
+    bnd = he[~np.isin(he[:, 1] * np.int64(n) + he[:, 0], key)]
+    return bnd[np.lexsort((bnd[:, 1], bnd[:, 0]))]
+
+
 def boundary_loops(F: np.ndarray, n: int) -> list[np.ndarray]:
     """The boundary of a triangle mesh as closed loops of vertices.
 
@@ -189,10 +197,7 @@ def boundary_loops(F: np.ndarray, n: int) -> list[np.ndarray]:
     >>> [loop.tolist() for loop in boundary_loops(F, 4)]
     [[0, 1, 2, 3]]
     """
-    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
-    key = he[:, 0] * np.int64(n) + he[:, 1]
-    bnd = he[~np.isin(he[:, 1] * np.int64(n) + he[:, 0], key)]
-    bnd = bnd[np.lexsort((bnd[:, 1], bnd[:, 0]))]  # a fixed walk order
+    bnd = _boundary_halfedges(F, n)  # sorted: a fixed walk order
     starts = np.searchsorted(bnd[:, 0], np.arange(n + 1))  # outgoing edges of each vertex
     used = np.zeros(len(bnd), dtype=bool)
     loops = []
@@ -280,10 +285,10 @@ def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     n = len(V)
-    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    keys = np.sort(he[:, 0] * np.int64(n) + he[:, 1])
+    bnd = _boundary_halfedges(F, n)
+    keys = bnd[:, 0] * np.int64(n) + bnd[:, 1]  # sorted
 
-    def closes(loop: np.ndarray) -> bool:  # the edge back to the first vertex is a face's
+    def closes(loop: np.ndarray) -> bool:  # the step back to the first vertex is on the boundary
         k = int(loop[-1]) * n + int(loop[0])
         i = int(np.searchsorted(keys, k))
         return i < keys.size and int(keys[i]) == k
