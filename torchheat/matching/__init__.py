@@ -23,12 +23,13 @@ The package's modules, in the order data flows: :mod:`.nn` (nearest-neighbour en
 search, dense maps, seeding), :mod:`.orientation`, :mod:`.refine` (correspondence
 augmentation), :mod:`.result` (:class:`Correspondence`), :mod:`.select` (the choice among
 refined hypotheses by ZoomOut, and the chosen maps made dense), :mod:`.partial_scale` (a piece
-matched at two scales, ``partial_scale="auto"``), :mod:`.pipeline` (:func:`match`, its stages
-in order; :mod:`.options` holds what they read) and :mod:`.symmetry` (:func:`symmetry`), with
+matched two ways — at the whole's scale and with its holes filled, ``partial_scale="auto"``),
+:mod:`.pipeline` (:func:`match`, its stages in order; :mod:`.options` holds what they read)
+and :mod:`.symmetry` (:func:`symmetry`), with
 :mod:`.zoomout` (spectral refinement), :mod:`.fmap` (the landmark-free functional map),
 :mod:`.partial` (a piece matched into its whole, ``match(..., partial=True)``) and
 :mod:`.quality`. Each imports only the ones before it: the stages that need :func:`match` run
-again get it passed in (the two scales of a piece get ``match``, the mirror partners of
+again get it passed in (the two ways of a piece get ``match``, the mirror partners of
 :mod:`.select` the target's self-symmetry).
 """
 

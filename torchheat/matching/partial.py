@@ -30,6 +30,9 @@ What changes against a full match (see :func:`torchheat.match` with ``partial=Tr
   restriction of a function of N is always defined on M, the converse is not), and the point
   map is ``T(x) = argmin_y |Phi_M[x] C - Phi_N[y]|``.
 
+This module is the piece-scale way; :mod:`.partial_scale` adds the other (the piece with its
+holes filled, matched as a whole shape) and chooses between the two.
+
 Direction: the partial shape must be the source. A full shape matched *into* a piece
 (``match(full, part)``) is a full match whose map sends the missing region to wherever its
 descriptors are closest — meaningless there; this module is for ``part -> full``.
