@@ -219,6 +219,18 @@ def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed):
         match(holed, whole, partial=True, partial_scale="holes")
 
 
+def test_partial_scale_unit_stays_one_option_away(spot_holed):
+    # the second way before "filled": the holed piece at unit area, holes open
+    holed, whole, truth = spot_holed
+    corr = match(holed, whole, partial=True, partial_scale="unit")
+    info = corr.info["partial"]
+    assert info["scale"] == "unit" and info["ratio"] == pytest.approx(
+        holed.area() / whole.area(), rel=1e-9)
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert corr.map.shape == (holed.n_vertices,) and np.mean(err < 0.05) > 0.5
+
+
 def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece):
     piece, whole, _ = spot_piece
     V, F = whole.numpy()
