@@ -219,6 +219,19 @@ def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed):
         match(holed, whole, partial=True, partial_scale="holes")
 
 
+def test_partial_auto_tries_the_filled_piece_when_the_piece_is_most_of_the_whole(spot_holed):
+    # the piece way reads clear here (agreement + 0.5 quality >= 0.9) but is coarse; with 96 %
+    # of the area the filled piece is nearly the whole and is tried anyway, and wins
+    holed, whole, truth = spot_holed
+    corr = match(holed, whole, partial=True)
+    info = corr.info["partial"]
+    assert set(info["quality"]) >= {"piece", "filled"} and info["scale"] == "filled"
+    assert info["agreement"]["piece"] + 0.5 * info["quality"]["piece"] >= 0.9
+    W, _ = whole.numpy()
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
+
+
 def test_partial_scale_unit_stays_one_option_away(spot_holed):
     # the second way before "filled": the holed piece at unit area, holes open
     holed, whole, truth = spot_holed
