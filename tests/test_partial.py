@@ -232,6 +232,25 @@ def test_partial_auto_tries_the_filled_piece_when_the_piece_is_most_of_the_whole
     assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
 
 
+def test_a_piece_whose_holes_cannot_be_closed(spot_holed, monkeypatch):
+    # a patch with a zero-area face: "filled" names the piece and what to do instead; "auto"
+    # keeps the piece way and says why the other was not used
+    from torchheat.matching import partial_scale
+
+    def bad_fill(V, F):
+        a, b = int(F[0, 0]), int(F[0, 1])
+        return np.vstack([V, V[a][None]]), np.vstack([F, [[a, b, len(V)]]])
+
+    monkeypatch.setattr(partial_scale, "fill_holes", bad_fill)
+    holed, whole, truth = spot_holed
+    with pytest.raises(MeshError, match="spot-holed: closing its holes .*partial_scale='piece'"):
+        match(holed, whole, partial=True, partial_scale="filled")
+    corr = match(holed, whole, partial=True)
+    info = corr.info["partial"]
+    assert info["scale"] == "piece" and "filled" not in info["quality"]
+    assert "the filled piece failed" in info["chosen_by"]
+
+
 def test_partial_scale_unit_stays_one_option_away(spot_holed):
     # the second way before "filled": the holed piece at unit area, holes open
     holed, whole, truth = spot_holed

@@ -23,7 +23,7 @@ from collections.abc import Callable
 import torch
 
 from ..heat import threads
-from ..mesh import Mesh
+from ..mesh import Mesh, MeshError
 from ..topology import fill_holes
 from .partial import _agreement, area_ratio, dense_partial_map
 from .prepared import PreparedShape, _as_prepared, _fps
@@ -61,6 +61,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     src, tgt, _ = _prepared_pair(source, target, kw)
     t_prep = time.perf_counter() - t0
     out = []  # (quality, label, corr, agreement or None)
+    not_tried = None
     dense_free = None
     skipped = False
     pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
@@ -70,8 +71,14 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
             if max(x[0] for x in out) >= SUSPECT_BELOW or kw["partial_landmarks"] != "deepest":
                 break
             order = "strongest"  # both maps suspect: once more from the strongest features
-        corr = match_fn(src, _role_copy(tgt), **{**kw, "partial_scale": scale,
-                                                 "partial_landmarks": order or "deepest"})
+        try:
+            corr = match_fn(src, _role_copy(tgt), **{**kw, "partial_scale": scale,
+                                                     "partial_landmarks": order or "deepest"})
+        except MeshError as err:
+            if scale != "filled":
+                raise
+            not_tried = str(err)  # the piece's holes could not be closed: the piece way alone
+            continue
         label = scale if order in (None, kw["partial_landmarks"]) else f"{scale}, {order}"
         q = corr.quality.quality if corr.quality is not None else -1.0
         if dense_free is None:
@@ -104,6 +111,8 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
             corr.info["partial"]["closed_quality"] = x[2].info["partial"]["closed_quality"]
     if dense_free is not None:
         corr.info["partial"]["agreement"] = {x[1]: x[3] for x in out}
+    if not_tried is not None:
+        corr.info["partial"]["chosen_by"] += f" (the filled piece failed: {not_tried})"
     tm = corr.info["timings"]
     tm["prepare"] = tm.get("prepare", 0.0) + t_prep
     tm["other_scale"] = sum(x[2].info["timings"].get("total", 0.0) for x in out
@@ -176,7 +185,12 @@ def filled_piece(mesh: Mesh) -> Mesh:
     V2, F2 = fill_holes(V, F)
     if len(V2) == len(V):
         return mesh
-    return Mesh(V2, F2, name=f"{mesh.name or 'source'} (holes filled)")
+    try:
+        return Mesh(V2, F2, name=f"{mesh.name or 'source'} (holes filled)")
+    except MeshError as err:  # e.g. a patch face of zero area over a degenerate loop
+        raise MeshError(f"{mesh.name or 'source'}: closing its holes made an invalid mesh "
+                        f"({err}); match it with partial_scale='piece' (--partial-scale "
+                        "piece)") from err
 
 
 def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict,
