@@ -332,7 +332,7 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
     else:
         print(f"orientation score of the {label}: {o:+.3f} (+1 preserving, -1 reversing)")
     print(f"symmetric alternative: {'found' if corr.has_symmetric_map else 'none'}")
-    part = corr.info.get("partial")
+    part = corr.partial_summary()
     if part:
         how = f" ({part['chosen_by']})" if part.get("chosen_by") else ""
         print(f"partial: the source is {100 * part['ratio']:.0f} % of the target's area; "

@@ -59,6 +59,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     ``match`` itself, called with ``partial_scale="piece"`` or ``"filled"``."""
     t0 = time.perf_counter()
     src, tgt, _ = _prepared_pair(source, target, kw)
+    most = area_ratio(src.mesh, tgt.mesh) >= _PARTIAL_MOST  # the filled way is always tried
     t_prep = time.perf_counter() - t0
     out = []  # (quality, label, corr, agreement or None)
     not_tried = None
@@ -85,8 +86,8 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
             dense_free = _landmark_free_dense(src, tgt, corr)
         a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
         out.append((q, label, corr, a))
-        if (len(out) == 1 and a is not None and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH
-                and area_ratio(src.mesh, tgt.mesh) < _PARTIAL_MOST):
+        if (len(out) == 1 and not most and a is not None
+                and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH):
             skipped = True  # the piece-scale map is clearly right: the filled piece is not tried
             break
     if dense_free is None:
@@ -212,7 +213,7 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         info["p"] = None  # the first landmark lies on a patch: no vertex of the piece
     info["partial"] = {"ratio": ratio, "scale": "filled", "descriptor_fmap": None,
                        "filled_vertices": fsrc.n - n}
-    if kw["final_map"] and full.quality is not None:
+    if full.quality is not None:  # None with final_map=False
         # the closed piece against the whole, read like a full match: reported, not used to
         # choose (right maps of holed pieces read 0.25-1, but a capped cut piece can read as
         # high: the wrong map of the cow's capped front, 0.43)
