@@ -638,3 +638,67 @@ def test_fill_holes_cuts_a_pinched_loop_into_simple_ones():
     he = np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]])
     edges, counts = np.unique(np.sort(he, axis=1), axis=0, return_counts=True)
     assert (counts == 2).all()  # closed, every edge manifold
+
+
+def _flip_some(F: np.ndarray, seed: int = 0, share: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """``F`` with a random minority of faces reversed, and the mask of those faces."""
+    rng = np.random.default_rng(seed)
+    turned = rng.random(len(F)) < share
+    G = F.copy()
+    G[turned] = G[turned][:, [0, 2, 1]]
+    return G, turned
+
+
+def test_orient_faces_undoes_reversed_faces():
+    from torchheat.topology import orient_faces
+
+    for V, F in (_holed_sphere(), (np.asarray(trimesh.creation.icosphere(3).vertices),
+                                   np.asarray(trimesh.creation.icosphere(3).faces))):
+        G, turned = _flip_some(F)
+        F2, flipped, ok = orient_faces(G, len(V))
+        assert ok and flipped == turned.sum() > 0
+        assert np.array_equal(F2, F)  # the same rows, in order, turned back
+        assert orient_faces(F, len(V))[1:] == (0, True)  # consistent: untouched
+        # the majority keeps its sense: all faces reversed but a few -> the few turn
+        H, few = _flip_some(F[:, [0, 2, 1]], seed=1, share=0.1)
+        F3, k, _ = orient_faces(H, len(V))
+        assert k == few.sum() and np.array_equal(F3, F[:, [0, 2, 1]])
+
+
+def test_orient_faces_patches_and_moebius():
+    from torchheat.topology import orient_faces
+
+    # two triangles joined only at a vertex: separate patches, each keeps its own sense
+    F = np.array([[0, 1, 2], [2, 4, 3]])
+    assert orient_faces(F, 5)[1:] == (0, True)
+    # a Moebius strip (a band of 2 * 6 triangles glued with a half twist) cannot be oriented
+    k = 6
+    top, bot = np.arange(k), np.arange(k) + k
+    F = []
+    for i in range(k):
+        j = (i + 1) % k
+        a, b, c, d = top[i], bot[i], top[j], bot[j]
+        if j == 0:
+            c, d = d, c  # the twist: top meets bottom
+        F += [[a, b, c], [b, d, c]]
+    F2, flipped, ok = orient_faces(np.array(F), 2 * k)
+    assert not ok and flipped == 0 and np.array_equal(F2, F)
+
+
+def test_mesh_turns_reversed_faces_so_boundaries_and_patches_stay_manifold():
+    from torchheat.topology import boundary_loops, fill_holes
+
+    V, F = _holed_sphere()
+    G, turned = _flip_some(F, share=0.05)
+    mesh = Mesh(V, G, name="flipped")
+    assert mesh.flipped_faces == turned.sum()
+    assert np.array_equal(mesh.faces.numpy(), F)
+    # as given, the reversed faces' edges read as boundary: more loops, and the patches over
+    # them would glue a third face to interior edges
+    assert len(boundary_loops(G, len(V))) > 3
+    assert len(boundary_loops(mesh.faces.numpy(), len(V))) == 3
+    V2, F2 = fill_holes(*mesh.numpy())
+    Mesh(V2, F2, name="filled")
+    _, counts = np.unique(np.sort(np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]]),
+                                  axis=1), axis=0, return_counts=True)
+    assert (counts == 2).all()
