@@ -177,6 +177,29 @@ def test_partial_auto_keeps_a_clear_piece_map_without_the_unit_scale(spot_piece,
     assert np.mean(err < 0.05) > 0.9
 
 
+def test_partial_auto_skips_the_filled_piece_when_closed_it_is_too_small(spot_piece):
+    # the front 45 % of the cow: closed, it covers 55 % of the whole (< 60 %), too little to
+    # pass for the whole; only the piece way runs
+    from torchheat.matching.partial_scale import _FILLED_LEAST, filled_piece
+
+    _, whole, _ = spot_piece
+    M = load_mesh(DATA / "spot.obj")
+    small = cut(M, 2, 0.45, name="spot-front-small")
+    closed = filled_piece(small).area() / whole.area()
+    assert 0.5 < closed < _FILLED_LEAST
+    corr = match(small, whole, partial=True)
+    info = corr.info["partial"]
+    assert info["scale"] == "piece" and "filled" not in info["quality"]
+    assert info["closed_ratio"] == pytest.approx(closed, rel=1e-9)
+    assert f"covers {100 * closed:.1f} % of the whole" in info["chosen_by"]
+    assert "not tried" in info["chosen_by"]
+    V, F = M.numpy()
+    W, G, perm = moved_copy(V, F, seed=5)  # the same motion as spot_piece's whole
+    truth = perm[small.vertex_map.numpy()]
+    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
+    assert np.mean(err < 0.05) > 0.8, np.mean(err < 0.05)
+
+
 @pytest.fixture(scope="module")
 def spot_holed():
     """The cow Spot with eight holes punched in it (the two-rings of far-apart vertices,
