@@ -124,4 +124,6 @@ def test_chebyshev_blocks_within_budget(monkeypatch):
     monkeypatch.setattr(th, "CHEBYSHEV_BYTES", 5 * per_source + 1)
     got = hk.columns(src)
     assert blocks == [5, 5, 5, 5, 4]
-    assert torch.equal(got, ref)  # columns do not depend on their block
+    # columns do not depend on their block (to the last bits: the sparse product's summation
+    # order may follow the block's width on some CPUs — 1.4e-14 on values ~90, Intel Xeon)
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
