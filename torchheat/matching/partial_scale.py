@@ -27,7 +27,7 @@ from ..mesh import Mesh, MeshError
 from ..topology import fill_holes
 from .partial import _agreement, area_ratio, dense_partial_map
 from .prepared import PreparedShape, _as_prepared, _fps
-from .quality import SUSPECT_BELOW, MapQuality, map_quality
+from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
 
 
@@ -71,23 +71,20 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     dense_free = None
     skipped = False
     pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
-    for scale, order in (("piece", kw["partial_landmarks"]), ("filled", None),
-                         ("piece", "retry")):
-        if order == "retry":
-            if max(x[0] for x in out) >= SUSPECT_BELOW or kw["partial_landmarks"] != "deepest":
-                break
-            order = "strongest"  # both maps suspect: once more from the strongest features
+    # (a third way, the piece once more from its strongest features when both maps read
+    # suspect, was dropped: on SHREC'16 it ran on 26 of 150 pieces, gave the same map on 24,
+    # and was chosen once, worse than the filled map it displaced — RESULTS.md)
+    for scale in ("piece", "filled"):
         if scale == "filled" and (closed is None or too_small):
             continue
         try:
-            corr = match_fn(src, _role_copy(tgt), **{**kw, "partial_scale": scale,
-                                                     "partial_landmarks": order or "deepest"})
+            corr = match_fn(src, _role_copy(tgt), **{**kw, "partial_scale": scale})
         except MeshError as err:
             if scale != "filled":
                 raise
             not_tried = str(err)  # the piece's holes could not be closed: the piece way alone
             continue
-        label = scale if order in (None, kw["partial_landmarks"]) else f"{scale}, {order}"
+        label = scale
         q = corr.quality.quality if corr.quality is not None else -1.0
         if dense_free is None:
             dense_free = _landmark_free_dense(src, tgt, corr)
