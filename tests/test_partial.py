@@ -322,6 +322,10 @@ def test_cli_partial(spot_piece, tmp_path, capsys):
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["partial"]["scale"] in rep["partial"]["quality"]  # the way kept, and its reading
     assert rep["partial"]["ratio"] == pytest.approx(piece.area() / whole.area(), rel=1e-6)
+    from torchheat.matching.partial_scale import filled_piece
+
+    assert rep["partial"]["closed_ratio"] == pytest.approx(
+        filled_piece(piece).area() / whole.area(), rel=1e-6)
     f = np.loadtxt(out, dtype=np.int64)
     W, _ = whole.numpy()
     err = np.linalg.norm(W[f] - W[truth], axis=1) / whole.bbox_diagonal()
