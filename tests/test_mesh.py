@@ -671,6 +671,13 @@ def test_orient_faces_patches_and_moebius():
     # two triangles joined only at a vertex: separate patches, each keeps its own sense
     F = np.array([[0, 1, 2], [2, 4, 3]])
     assert orient_faces(F, 5)[1:] == (0, True)
+    # two spheres, one facing in and one out, a few faces reversed in each: each patch's
+    # majority wins on its own
+    S = np.asarray(trimesh.creation.icosphere(2).faces)
+    F = np.vstack([S, S[:, [0, 2, 1]] + 162])
+    G, turned = _flip_some(F, seed=3, share=0.1)
+    F2, flipped, ok = orient_faces(G, 324)
+    assert ok and flipped == turned.sum() and np.array_equal(F2, F)
     # a Moebius strip (a band of 2 * 6 triangles glued with a half twist) cannot be oriented
     k = 6
     top, bot = np.arange(k), np.arange(k) + k

@@ -189,10 +189,13 @@ def orient_faces(F: np.ndarray, n: int) -> tuple[np.ndarray, int, bool]:
 
     Notes
     -----
-    A breadth-first walk over the face adjacency (``scipy.sparse.csgraph``), ``O(m log m)``;
-    about 20 ms for a 20k-face mesh. Orientation matters wherever a normal or a turning sense
-    is read (vertex normals, the orientation term of functional maps, the direction of
-    boundary loops, :func:`fill_holes`); areas and cotangent weights do not depend on it.
+    One breadth-first walk over the face adjacency (``scipy.sparse.csgraph``), the parity of
+    each face read along the tree by pointer jumping, ``O(m log m)``: 3 ms for a consistent
+    20k-face mesh (one sort, no walk), 10 ms for SHREC'16's michael (538 faces reversed), 1.7 s
+    for 1.3M faces with 30 % reversed at random. Orientation matters wherever a normal or a
+    turning sense is read (vertex normals, the orientation term of functional maps, the
+    direction of boundary loops, :func:`fill_holes`); areas and cotangent weights do not
+    depend on it.
 
     Examples
     --------
@@ -222,20 +225,24 @@ def orient_faces(F: np.ndarray, n: int) -> tuple[np.ndarray, int, bool]:
     if not same.any():
         return F, 0, True
     W = sp.coo_matrix((np.ones(2 * f.size), (np.r_[f, g], np.r_[g, f])), shape=(m, m)).tocsr()
-    flip_keys = np.sort(np.r_[f[same] * np.int64(m) + g[same], g[same] * np.int64(m) + f[same]])
     ncomp, labels = connected_components(W, directed=False)
-    turn = np.zeros(m, dtype=bool)
-    seen = np.zeros(ncomp, dtype=bool)
-    for root in range(m):  # one walk per patch, from its first face
-        c = labels[root]
-        if seen[c]:
-            continue
-        seen[c] = True
-        walk, pred = breadth_first_order(W, root, directed=False, return_predecessors=True)
-        child = walk[1:]
-        step = np.isin(pred[child].astype(np.int64) * m + child, flip_keys)
-        for v, s in zip(child.tolist(), step.tolist(), strict=True):  # parents first
-            turn[v] = turn[pred[v]] ^ s
+    # one breadth-first walk over all patches: a node m joined to the first face of each
+    first = np.full(ncomp, m, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(m, dtype=np.int64))
+    top = sp.coo_matrix((np.ones(2 * f.size + first.size),
+                         (np.r_[f, g, np.full(first.size, m)], np.r_[g, f, first])),
+                        shape=(m + 1, m + 1)).tocsr()
+    _, pred = breadth_first_order(top, m, directed=True, return_predecessors=True)
+    pred = pred[:m].astype(np.int64)
+    # turn = XOR of the disagreements along the tree path from the patch's first face, by
+    # pointer jumping (log2(depth) vectorised steps instead of a walk in Python)
+    flip_keys = np.sort(np.r_[f[same] * np.int64(m) + g[same], g[same] * np.int64(m) + f[same]])
+    anc = np.where(pred == m, np.arange(m), pred)  # a patch's first face is its own root
+    step = anc * np.int64(m) + np.arange(m)
+    turn = flip_keys[np.searchsorted(flip_keys, step).clip(max=flip_keys.size - 1)] == step
+    while np.any(anc != anc[anc]):
+        turn ^= turn[anc]
+        anc = anc[anc]
     if np.any(turn[f] ^ turn[g] != same):
         return F, 0, False
     # the majority of each patch keeps its orientation
