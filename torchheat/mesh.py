@@ -28,8 +28,8 @@ Conventions
   neighbours are turned (:func:`torchheat.topology.orient_faces`: in each patch the minority
   is reversed, :attr:`Mesh.flipped_faces` counts them; vertex order and indices are kept), since
   normals, boundary loops and the mirror-image test read the faces' turning sense (SHREC'16's
-  michael and david, and TOSCA's horse, have patches of reversed faces); a mesh that cannot
-  be oriented raises a :class:`MeshWarning`.
+  michael and david, and TOSCA hires's horse5/6, centaur3/4 and david0/1, have patches of
+  reversed faces); a mesh that cannot be oriented raises a :class:`MeshWarning`.
 * A face is degenerate when its area is ``<= 1e-12 * d**2`` with ``d`` the bounding-box
   diagonal; faces with a repeated vertex are always degenerate.
 * Validation is vectorised (numpy, ``scipy.sparse.csgraph``): about 50 ms for a 60k-vertex

@@ -66,7 +66,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     except MeshError as err:
         closed, not_tried = None, str(err)  # the holes cannot be closed: the piece way alone
     t_prep = time.perf_counter() - t0
-    out = []  # (quality, label, corr, agreement or None)
+    out = []  # (quality, way, corr, agreement or None)
     too_small = closed is not None and closed < _FILLED_LEAST
     dense_free = None
     skipped = False
@@ -82,14 +82,13 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         except MeshError as err:
             if scale != "filled":
                 raise
-            not_tried = str(err)  # the piece's holes could not be closed: the piece way alone
+            not_tried = str(err)  # the closed piece could not be matched: the piece way alone
             continue
-        label = scale
         q = corr.quality.quality if corr.quality is not None else -1.0
         if dense_free is None:
             dense_free = _landmark_free_dense(src, tgt, corr)
         a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
-        out.append((q, label, corr, a))
+        out.append((q, scale, corr, a))
         if (len(out) == 1 and not most and a is not None
                 and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH):
             skipped = True  # the piece-scale map is clearly right: the filled piece is not tried
