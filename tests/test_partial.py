@@ -191,7 +191,7 @@ def test_partial_auto_skips_the_filled_piece_when_closed_it_is_too_small(spot_pi
     info = corr.info["partial"]
     assert info["scale"] == "piece" and "filled" not in info["quality"]
     assert info["closed_ratio"] == pytest.approx(closed, rel=1e-9)
-    assert f"covers {100 * closed:.1f} % of the whole" in info["chosen_by"]
+    assert f"would cover {100 * closed:.1f} % of the whole" in info["chosen_by"]
     assert "not tried" in info["chosen_by"]
     V, F = M.numpy()
     W, G, perm = moved_copy(V, F, seed=5)  # the same motion as spot_piece's whole

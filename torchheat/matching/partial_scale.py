@@ -108,9 +108,9 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         chosen_by = "agreement with the landmark-free map + 0.5 quality" + (
             " (clear at the piece's scale: the filled piece not tried)" if skipped else "")
     if too_small:
-        chosen_by = (f"the piece's scale: closed, the piece covers {100 * closed:.1f} % of the "
-                     f"whole (< {100 * _FILLED_LEAST:.0f} %), too little to match as the whole; "
-                     "the filled piece not tried")
+        chosen_by = (f"closed, the piece would cover {100 * closed:.1f} % of the whole "
+                     f"(< {100 * _FILLED_LEAST:.0f} %): too little to pass for the whole, the "
+                     "filled piece not tried")
     corr = best[2]
     corr.info["partial"] = {**corr.info["partial"], "chosen_by": chosen_by,
                             "closed_ratio": closed,
