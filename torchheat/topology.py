@@ -48,14 +48,17 @@ def edge_keys(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     >>> keys.tolist(), counts.tolist()  # edge (1, 2) = 1 * 4 + 2 is shared
     ([1, 2, 6, 7, 11], [1, 1, 2, 1, 1])
     """
-    a = F[:, [0, 1, 2]].ravel()
-    b = F[:, [1, 2, 0]].ravel()
-    lo = np.minimum(a, b)
-    hi = np.maximum(a, b)
-    keep = lo != hi
-    keys = lo[keep].astype(np.int64) * np.int64(n) + hi[keep]
-    keys, counts = np.unique(keys, return_counts=True)
+    keys, _ = _face_edge_keys(F, n)
+    keys, counts = np.unique(keys[keys % n != keys // n], return_counts=True)
     return keys, counts
+
+
+def _face_edge_keys(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``3 m`` face edges (face ``i``'s at ``3 i .. 3 i + 2``) as undirected keys
+    ``min * n + max`` (int64), and whether each is walked from its lower vertex."""
+    a = F[:, [0, 1, 2]].ravel().astype(np.int64)
+    b = F[:, [1, 2, 0]].ravel().astype(np.int64)
+    return np.minimum(a, b) * np.int64(n) + np.maximum(a, b), a < b
 
 
 def adjacency_from_keys(keys: np.ndarray, n: int) -> sp.csr_matrix:
@@ -208,11 +211,8 @@ def orient_faces(F: np.ndarray, n: int) -> tuple[np.ndarray, int, bool]:
 
     F = np.asarray(F, dtype=np.int64)
     m = len(F)
-    a = F[:, [0, 1, 2]].ravel()
-    b = F[:, [1, 2, 0]].ravel()
     face = np.repeat(np.arange(m, dtype=np.int64), 3)
-    key = np.minimum(a, b) * np.int64(n) + np.maximum(a, b)
-    forward = a < b
+    key, forward = _face_edge_keys(F, n)
     order = np.argsort(key, kind="stable")
     key, face, forward = key[order], face[order], forward[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -281,8 +281,9 @@ def boundary_loops(F: np.ndarray, n: int) -> list[np.ndarray]:
     list of numpy.ndarray of int64
         One array per loop, its vertices in order (the closing edge back to the first is
         implied); a chain that does not close (a boundary vertex with two outgoing boundary
-        edges, or an inconsistently oriented mesh) is returned as it was walked. Empty for a
-        closed mesh.
+        edges, or an inconsistently oriented mesh: :class:`torchheat.Mesh` turns such faces
+        at load, :func:`orient_faces` on raw arrays) is returned as it was walked. Empty for
+        a closed mesh.
 
     Examples
     --------
