@@ -45,7 +45,7 @@ from .partial import (
 from .partial_scale import _match_filled, _partial_auto
 from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
 from .quality import MapQuality, map_quality
-from .refine import _dense_final, _is_identity, _Refiner
+from .refine import _dense_final, _fixed_share, _is_identity, _Refiner
 from .result import Correspondence, _numbering
 from .select import (
     _DESCR_DIRECT,
@@ -629,7 +629,13 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             # a near-identity mixture reading -0.19 won by its low energy on victoria12)
             if not opt.orientation or alt["orientation"] <= -_DESCR_DIRECT:
                 rest.append(alt)
-        sym = min(rest, key=lambda r: logE(r) + w * r["orientation"]) if rest else None
+        def sym_score(r: dict) -> float:
+            s_ = logE(r) + w * r["orientation"]
+            if tgt is src:  # a reflection fixes only the samples near its plane
+                s_ += _SELF_FIXED_WEIGHT * _fixed_share(r, Vs, 0.05 * diam_s, samples)
+            return s_
+
+        sym = min(rest, key=sym_score) if rest else None
         if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
             sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
         if opt.zoomout and opt.partial_ratio is not None:
@@ -678,6 +684,15 @@ _PARTIAL_DESCR_LANDMARKS = 4
 
 
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
+#: Self-maps: the symmetric map minimises ``log(energy) + orientation_weight * orientation +
+#: _SELF_FIXED_WEIGHT * fixed``, ``fixed`` the share of the refinement samples left within 5 %
+#: of the diameter of themselves. A reflection fixes only a band around its plane (0.06-0.35
+#: of the samples on the right TOSCA symmetries); a map that is part identity, part
+#: reflection fixes more and has a low energy for it (the identity part costs nothing):
+#: victoria23's landmark-free candidate fixed 0.33 against the right one's 0.12. Measured on
+#: the 76 TOSCA 5k shapes (in sample; the samples' images within 0.08 diameters of the
+#: truth): 0.959 without, 0.966 / 0.973 / 0.971 / 0.962 with weights 8 / 10 / 12 / 16.
+_SELF_FIXED_WEIGHT = 10.0
 
 
 def _sym_key(shape: PreparedShape, log_floor: float | None) -> tuple:

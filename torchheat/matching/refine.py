@@ -138,9 +138,15 @@ def _dense_final(refiner: _Refiner, g: torch.Tensor, num_threads: int | None,
     return compute
 
 
+def _fixed_share(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
+    """Share of the samples that a self-map hypothesis leaves in place: images within
+    ``radius`` (Euclidean) of themselves."""
+    s = samples.numpy()
+    g = r["g"].numpy()
+    return float(np.mean(np.linalg.norm(V[g] - V[s], axis=1) <= radius))
+
+
 def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
     """Whether a refined self-map hypothesis is (mostly) the identity: most samples land
     within ``radius`` of themselves (its starting landmarks may not say so)."""
-    s = samples.numpy()
-    g = r["g"].numpy()
-    return bool(np.mean(np.linalg.norm(V[g] - V[s], axis=1) <= radius) > 0.5)
+    return _fixed_share(r, V, radius, samples) > 0.5
