@@ -593,3 +593,26 @@ def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
     assert torch.equal(D2, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
     match(S, S)
     assert "_desc_cache" not in S.__dict__
+
+
+@pytest.mark.skipif(not (_SHARED / "tosca_remeshed_5k").is_dir(), reason="no shared/data")
+def test_symmetry_pays_for_fixed_samples_victoria23():
+    # regression: victoria23's landmark-free self-map, part identity and part reflection,
+    # won by its low energy (the identity part costs none); the symmetric map now pays for
+    # the samples it leaves in place (fixed_weight), and the reflection wins
+    from torchheat.datasets import tosca_remeshed_5k_symmetry
+    from torchheat.evaluate import mesh_area
+
+    pc = tosca_remeshed_5k_symmetry(root=_SHARED)
+    pair = pc[pc.names.index("victoria23-victoria23")]
+    S = prepare(pair.source.mesh)
+    gs, gt = pair.gt_src.numpy(), pair.gt_tgt.numpy()
+    V = pair.source.mesh.numpy()[0]
+    scale = math.sqrt(mesh_area(pair.source.mesh))
+
+    def right(corr):
+        m = corr.map.numpy()
+        return float((np.linalg.norm(V[m[gs]] - V[gt], axis=1) / scale < 0.1).mean())
+
+    assert right(symmetry(S)) > 0.9
+    assert right(symmetry(S, fixed_weight=0.0)) < 0.8  # the mixture

@@ -19,6 +19,7 @@ class _Options:
     mirror_hypothesis: bool
     mirror_energy_ratio: float | None
     orientation_weight: float
+    fixed_weight: float
     refine_log_floor: float | None
     expand_top: int
     source_landmarks: int

@@ -79,6 +79,7 @@ def match(
     mirror_hypothesis: bool = True,
     mirror_energy_ratio: float | None = None,
     orientation_weight: float = 3.0,
+    fixed_weight: float = 0.0,
     refine_log_floor: float | None = None,
     expand_top: int = 2,
     source_landmarks: int | None = None,
@@ -179,6 +180,14 @@ def match(
     orientation_samples : int
         Farthest-point samples whose fat triangles the orientation test reads (``method=
         "refine"``; more triangles average out the local errors of a refined map).
+    fixed_weight : float
+        (a shape against itself, ``method="refine"``) The symmetric self-map minimises
+        ``log(energy) + orientation_weight * orientation + fixed_weight * fixed``, ``fixed``
+        the share of the refinement samples it leaves within 5 % of the diameter of
+        themselves: a reflection fixes only a band around its plane, a map that is part
+        identity, part reflection fixes more (and its identity part costs no energy).
+        0 (default) for matches, including the target's self-symmetry behind the mirror
+        hypothesis; :func:`symmetry` uses 10 (``SYMMETRY_FIXED_WEIGHT``).
     refine_log_floor : float or None
         Refinement descriptor: None (default) the t-scaled heat kernel map of the samples;
         a float uses ``log max(k_t, floor)`` instead (Varadhan: distance-like coordinates).
@@ -378,7 +387,7 @@ def match(
                 refine_iterations=refine_iterations, orientation=orientation,
                 score_samples=score_samples, mirror_hypothesis=mirror_hypothesis,
                 mirror_energy_ratio=mirror_energy_ratio, orientation_weight=orientation_weight,
-                refine_log_floor=refine_log_floor, expand_top=expand_top,
+                fixed_weight=fixed_weight, refine_log_floor=refine_log_floor, expand_top=expand_top,
                 source_landmarks=source_landmarks, extra_candidates=extra_candidates,
                 refine_keep=refine_keep, orientation_samples=orientation_samples,
                 num_threads=num_threads, final_map=final_map, use_hks=use_hks, engine=engine,
@@ -631,8 +640,8 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                 rest.append(alt)
         def sym_score(r: dict) -> float:
             s_ = logE(r) + w * r["orientation"]
-            if tgt is src:  # a reflection fixes only the samples near its plane
-                s_ += _SELF_FIXED_WEIGHT * _fixed_share(r, Vs, 0.05 * diam_s, samples)
+            if tgt is src and opt.fixed_weight:  # a reflection fixes only a band
+                s_ += opt.fixed_weight * _fixed_share(r, Vs, 0.05 * diam_s, samples)
             return s_
 
         sym = min(rest, key=sym_score) if rest else None
@@ -684,15 +693,6 @@ _PARTIAL_DESCR_LANDMARKS = 4
 
 
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
-#: Self-maps: the symmetric map minimises ``log(energy) + orientation_weight * orientation +
-#: _SELF_FIXED_WEIGHT * fixed``, ``fixed`` the share of the refinement samples left within 5 %
-#: of the diameter of themselves. A reflection fixes only a band around its plane (0.06-0.35
-#: of the samples on the right TOSCA symmetries); a map that is part identity, part
-#: reflection fixes more and has a low energy for it (the identity part costs nothing):
-#: victoria23's landmark-free candidate fixed 0.33 against the right one's 0.12. Measured on
-#: the 76 TOSCA 5k shapes (in sample; the samples' images within 0.08 diameters of the
-#: truth): 0.959 without, 0.966 / 0.973 / 0.971 / 0.962 with weights 8 / 10 / 12 / 16.
-_SELF_FIXED_WEIGHT = 10.0
 
 
 def _sym_key(shape: PreparedShape, log_floor: float | None) -> tuple:
