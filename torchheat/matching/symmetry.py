@@ -6,24 +6,12 @@ from __future__ import annotations
 from typing import Any
 
 from ..mesh import Mesh
-from .pipeline import match
+from .pipeline import SYMMETRY_FIXED_WEIGHT, match
 from .prepared import CachedShape, PreparedShape, _as_prepared
 from .quality import map_quality
 from .result import Correspondence, _numbering
 
 __all__ = ["symmetry"]
-
-
-#: :func:`symmetry`'s ``fixed_weight`` (see :func:`~torchheat.matching.match`): the symmetric
-#: self-map pays this weight times the share of samples it leaves in place. A reflection
-#: fixes a band around its plane (0.06-0.35 of the samples on the right TOSCA symmetries);
-#: victoria23's landmark-free candidate, part identity, fixed 0.33 against the right map's
-#: 0.12 and won by its lower energy. Measured on the 76 TOSCA 5k shapes (in sample; share of
-#: the samples' images within 0.08 diameters of the truth): 0.959 without, 0.966 / 0.973 /
-#: 0.971 / 0.962 with weights 8 / 10 / 12 / 16; whole maps 97.6 -> 98.8 % under 0.25. Not
-#: used for the target's self-symmetry inside :func:`match` (measured there, TOSCA 284: 3
-#: pairs better, 3 worse, net -0.25 points).
-SYMMETRY_FIXED_WEIGHT = 10.0
 
 
 def symmetry(
