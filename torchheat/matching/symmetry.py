@@ -21,7 +21,10 @@ def symmetry(
 
     The shape is matched against itself (:func:`match`); the identity is excluded by the
     orientation test, so ``.map`` is the symmetry (and ``.symmetric_map`` the direct
-    self-map, near the identity).
+    self-map, near the identity). Among the orientation-reversing self-maps the one of least
+    ``log(energy) + 3 orientation + 10 fixed`` wins, ``fixed`` the share of samples it leaves
+    in place (``fixed_weight``, see :func:`match`: a reflection fixes only a band around its
+    plane). TOSCA 5k, 76 shapes: 98.8 % of points under 0.25 sqrt(area) (RESULTS.md).
 
     Parameters
     ----------
