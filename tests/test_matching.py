@@ -616,3 +616,22 @@ def test_symmetry_pays_for_fixed_samples_victoria23():
 
     assert right(symmetry(S)) > 0.9
     assert right(symmetry(S, fixed_weight=0.0)) < 0.8  # the mixture
+
+
+def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
+    # the share of samples a self-map leaves in place, against the mirror plane's geometry:
+    # the reflection y -> -y moves a sample by exactly 2 |y|
+    S, _, _, mp = mirror_pair
+    V = S.mesh.numpy()[0]
+    s = tm.prepared._fps(S, 48)
+    r = 0.05 * S.mesh.bbox_diagonal()
+    share = tm.refine._fixed_share
+    assert share({"g": s}, V, r, s) == 1.0
+    refl = torch.as_tensor(mp)[s]
+    near_plane = float(np.mean(2 * np.abs(V[s.numpy(), 1]) <= r))
+    assert share({"g": refl}, V, r, s) == pytest.approx(near_plane)
+    assert near_plane < 0.5
+    mix = torch.where(torch.arange(48) < 24, s, refl)  # half identity, half reflection
+    half = float(np.mean(2 * np.abs(V[s.numpy()[24:], 1]) <= r))
+    assert share({"g": mix}, V, r, s) == pytest.approx(0.5 + 0.5 * half)
+    assert not tm.refine._is_identity({"g": refl}, V, r, s)
