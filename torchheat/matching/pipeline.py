@@ -701,7 +701,9 @@ _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothes
 #: shapes (in sample; share of the samples' images within 0.08 diameters of the truth):
 #: 0.959 without, 0.966 / 0.973 / 0.971 / 0.962 with weights 8 / 10 / 12 / 16; whole
 #: symmetries 97.6 -> 98.8 % under 0.25. Through the mirror partners (not used to set it):
-#: SCAPE 50 pairs 89.3 -> 91.6 %, TOSCA 284 pairs 3 better, 3 worse (RESULTS.md).
+#: SCAPE 50 pairs 89.3 -> 91.6 %; TOSCA 284 pairs 96.8 % on 1000 points either way (on 50
+#: points 3 pairs better, 3 worse); RESULTS.md, ninth session. The next distinct reversing
+#: self-map kept beside it (``_sym_alt_cache``) is still picked by energy alone.
 SYMMETRY_FIXED_WEIGHT = 10.0
 
 
