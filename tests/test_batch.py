@@ -167,6 +167,41 @@ def test_any_object_with_map_is_an_executor(reference, tmp_path):
     assert len(_lines(out)) == 2
 
 
+@needs_data
+def test_worker_processes_give_the_same_results(reference, tmp_path):
+    _, _, _, ref_results = reference
+    out = tmp_path / "workers"
+    results = batch.run(_config(tmp_path, out), workers=2, progress=False)
+    assert _numbers(results) == _numbers(ref_results)
+    assert len(_lines(out)) == 3
+
+
+def _ident(task):
+    import threading
+    import time
+
+    time.sleep(0.02)
+    return task, threading.get_ident()
+
+
+def test_affinity_pool_runs_a_targets_pairs_on_one_worker():
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = batch._AffinityPool(0)
+    pool.pools = [ThreadPoolExecutor(max_workers=1) for _ in range(2)]  # threads: quick
+    tasks = [(g, i) for g in "abcdefg" for i in range(4)]
+    try:
+        out = list(pool.run(_ident, tasks, key=lambda t: t[0]))
+    finally:
+        pool.shutdown()
+    assert sorted(t for t, _ in out) == sorted(tasks)  # every pair once
+    workers = {g: {w for (h, _), w in out if h == g} for g in "abcdefg"}
+    assert len({w for _, w in out}) == 2  # both workers used
+    # a target is split only when a free worker has no untouched target left (at the end);
+    # a shared queue (what a plain pool does) alternates the workers within most targets
+    assert sum(len(w) > 1 for w in workers.values()) <= 1
+
+
 def test_load_results_ignores_partial_line(tmp_path):
     p = tmp_path / "results.jsonl"
     p.write_text('{"key": "a#1", "name": "a"}\n{"key": "b#1", "na')

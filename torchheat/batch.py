@@ -17,8 +17,9 @@ Design
 ------
 * :func:`evaluate_pair` is one pure per-pair task (match, then evaluation) returning a JSON-able
   dict. :func:`run` maps a picklable wrapper of it over the pairs with an **executor**: the
-  built-in ``map`` in-process by default, a :class:`concurrent.futures.ProcessPoolExecutor`
-  for ``workers > 1`` (torch set to one thread per worker), a
+  built-in ``map`` in-process by default, ``workers`` one-process
+  :class:`concurrent.futures.ProcessPoolExecutor` s for ``workers > 1`` (torch set to one
+  thread per worker; the pairs of one target on one worker), a
   :class:`torchheat.executors.DaskExecutor` (``--dask local:N`` or ``tcp://HOST:PORT``,
   ``executor: {dask: ...}``), or any object with a ``map(fn, iterable)`` method.
   The tasks shipped to an executor are tiny (dataset name, arguments, pair index, options);
@@ -44,7 +45,9 @@ Design
   source and target shapes (:func:`torchheat.prepare`, LRU of 16 each) and, per target shape,
   the geodesic solver with its distance fields (LRU of 8 targets, fields up to
   ``$TORCHHEAT_FIELD_CACHE_MB`` = 512 MB per process). Pending pairs are scheduled grouped by
-  target so consecutive pairs reuse the target's fields.
+  target so consecutive pairs reuse the target's fields, and with ``workers > 1`` the pairs
+  of one target run on one worker (:class:`_AffinityPool`): a target is prepared, its
+  self-symmetry found and its geodesic fields computed once per run, not once per worker.
 
 Evaluation cost (TOSCA 5k, 2 busy cores, heat-method geodesics at ~1.9 ms per source)
 ------------------------------------------------------------------------------------
@@ -930,6 +933,65 @@ def _in_completion_order(executor: Any, fn: Callable, tasks: list) -> Iterator[d
         yield from executor.map(fn, tasks)
 
 
+class _AffinityPool:
+    """``workers`` one-process pools that run the pairs of one target on the same worker.
+
+    A worker prepares a target once, with everything the matcher caches on it (the
+    target's self-symmetry behind the mirror hypothesis: a whole self-match) and the
+    geodesic fields of its evaluation; a shared pool hands consecutive pairs of a target to
+    alternating workers, each paying those costs. A free worker takes the next pair of its
+    own target, else the next target nobody has started, else a pair of the target with
+    the most pairs left (so no worker idles while pairs remain). One pair per worker is in
+    flight; records come in completion order. Results do not depend on the scheduling.
+    """
+
+    def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
+        self.pools = [cf.ProcessPoolExecutor(max_workers=1, initializer=initializer)
+                      for _ in range(int(workers))]
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        for pool in self.pools:
+            pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def run(self, fn: Callable, tasks: Sequence, key: Callable[[Any], str]) -> Iterator[Any]:
+        """``fn(task)`` of every task (``key``: its target), in completion order."""
+        groups: OrderedDict[str, list] = OrderedDict()
+        for t in tasks:
+            groups.setdefault(key(t), []).append(t)
+        started: set[str] = set()
+        own: list[str | None] = [None] * len(self.pools)
+
+        def take(w: int) -> Any:
+            g = own[w]
+            if g is None or not groups.get(g):
+                fresh = [k for k, v in groups.items() if v and k not in started]
+                busy = [k for k, v in groups.items() if v]
+                if not busy:
+                    return None
+                g = fresh[0] if fresh else max(busy, key=lambda k: len(groups[k]))
+                own[w] = g
+                started.add(g)
+            return groups[g].pop(0)
+
+        running: dict[cf.Future, int] = {}
+        try:
+            for w, pool in enumerate(self.pools):
+                t = take(w)
+                if t is not None:
+                    running[pool.submit(fn, t)] = w
+            while running:
+                done, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
+                for fut in done:
+                    w = running.pop(fut)
+                    t = take(w)
+                    if t is not None:
+                        running[self.pools[w].submit(fn, t)] = w
+                    yield fut.result()
+        finally:
+            for fut in running:
+                fut.cancel()
+
+
 def _as_dask(executor: Any) -> Any:
     """The :class:`~torchheat.executors.DaskExecutor` of ``executor`` (one, or a
     ``distributed.Client`` wrapped), else None."""
@@ -1043,8 +1105,9 @@ def run(
     config : path-like or mapping
         See :func:`load_config` (a mapping may override e.g. ``output`` or ``limit``).
     workers : int
-        ``> 1``: a local :class:`~concurrent.futures.ProcessPoolExecutor` with that many
-        processes (one torch thread each). Ignored when ``executor`` is given.
+        ``> 1``: that many local worker processes (one torch thread each; the pairs of one
+        target run on the same worker, see :class:`_AffinityPool`). Ignored when
+        ``executor`` is given.
     executor : object with ``map(fn, iterable)``, optional
         Any executor; a :class:`concurrent.futures.Executor` is driven through ``submit`` so
         records are written as they finish. A :class:`torchheat.executors.DaskExecutor` (or a
@@ -1102,10 +1165,12 @@ def run(
             batches = _dask_batches(dask_ex, cfg, todo)
         else:
             if executor is None and workers > 1 and len(todo) > 1:
-                executor = cf.ProcessPoolExecutor(max_workers=int(workers),
-                                                  initializer=_worker_init)
-                owned.callback(executor.shutdown, wait=True, cancel_futures=True)
-            batches = ([r] for r in _in_completion_order(executor, _run_task, todo))
+                pool = _AffinityPool(int(workers), initializer=_worker_init)
+                owned.callback(pool.shutdown, wait=True, cancel_futures=True)
+                records = pool.run(_run_task, todo, key=_target_of)
+            else:
+                records = _in_completion_order(executor, _run_task, todo)
+            batches = ([r] for r in records)
         bar = owned.enter_context(tqdm(
             total=len(tasks), initial=len(tasks) - len(todo), file=sys.stderr,
             disable=not progress, desc=cfg["name"], unit="pair", dynamic_ncols=True))
