@@ -142,6 +142,24 @@ def test_cdist_memory_budget(p):
     assert torch.cdist(X[:r], Y[:c], p=p).numel() * 8 <= budget
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_min_rows_equals_torch_min(dtype):
+    # the vectorised row minimum of the GEMM-based searches: values and first index of ties
+    # (many ties after rounding to a grid) and NaN rows as torch's min
+    g = torch.Generator().manual_seed(1)
+    G = torch.round(torch.randn(300, 700, generator=g) * 3).to(dtype)
+    G[5, 100] = float("nan")
+    G[7] = float("nan")
+    v, i = tm.nn._min_rows(G)
+    rv, ri = G.min(dim=1)
+    assert torch.equal(i, ri)
+    assert torch.equal(torch.nan_to_num(v, nan=-9.0), torch.nan_to_num(rv, nan=-9.0))
+    assert i.dtype == torch.int64
+    # a column slice (not contiguous) too
+    v2, i2 = tm.nn._min_rows(G[:, 50:400])
+    assert torch.equal(i2, G[:, 50:400].min(dim=1).indices)
+
+
 def test_nearest_neighbors_bad_input():
     X = torch.zeros(3, 2, dtype=torch.float64)
     with pytest.raises(ValueError):

