@@ -19,6 +19,7 @@ from torchheat.matching.quality import map_quality
 from torchheat.matching.zoomout import (
     dense_spectral_map,
     functional_map,
+    lstsq,
     spectral_map,
     zoomout,
 )
@@ -42,6 +43,41 @@ def test_spectral_map_is_the_brute_force_nearest_neighbour():
     D = torch.cdist(phi_s[:, :10], phi_t[:, :10] @ C.T)
     assert torch.equal(idx, D.argmin(1))
     assert torch.allclose(d2, D.min(1).values ** 2, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_lstsq_is_reproducible_and_the_least_squares_solution(dtype):
+    # ZoomOut's functional maps: the same bits on every call (torch's default CPU driver
+    # returned 27 distinct solutions in 50 calls on this system), the SVD solution's values
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(500, 100, dtype=torch.float64, generator=g).to(dtype)
+    B = torch.randn(500, 100, dtype=torch.float64, generator=g).to(dtype)
+    first = lstsq(A, B)
+    assert all(torch.equal(lstsq(A.clone(), B.clone()), first) for _ in range(30))
+    ref = torch.linalg.lstsq(A.double(), B.double(), driver="gelsd").solution
+    assert float((first.double() - ref).abs().max()) < (1e-12 if dtype == torch.float64 else 1e-4)
+    # normal equations hold: A^T (A X - B) = 0
+    assert float((A.double().T @ (A.double() @ first.double() - B.double())).abs().max()) < (
+        1e-10 if dtype == torch.float64 else 1e-2)
+
+
+def test_lstsq_of_a_rank_deficient_system_is_the_minimum_norm_one():
+    A = torch.zeros(6, 3, dtype=torch.float64)
+    A[:, 0] = torch.arange(1.0, 7.0, dtype=torch.float64)
+    A[:, 1] = 2 * A[:, 0]  # rank 1: QR without pivoting cannot solve it
+    B = torch.arange(6.0, dtype=torch.float64)[:, None]
+    X = lstsq(A, B)
+    assert torch.allclose(X, torch.linalg.pinv(A) @ B, atol=1e-12)
+
+
+def test_match_is_reproducible(spot_pair):
+    # two runs of the whole pipeline on the same prepared pair: the same ZoomOut residuals
+    # (bit for bit) and the same map
+    S, T, _ = spot_pair
+    a, b = match(S, T), match(S, T)
+    assert torch.equal(a.map, b.map)
+    assert [z[2] for z in a.info["zoomout_candidates"]] == [
+        z[2] for z in b.info["zoomout_candidates"]]
 
 
 def test_zoomout_recovers_a_permutation_from_a_noisy_seed(spot_pair):

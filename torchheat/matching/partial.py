@@ -63,7 +63,7 @@ from .fmap import (
 from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
 from .prepared import PreparedShape, _fps
 from .refine import _refine_factors
-from .zoomout import ZoomOutResult, _sizes
+from .zoomout import ZoomOutResult, _sizes, lstsq
 
 __all__ = [
     "PARTIAL_MARGIN",
@@ -333,7 +333,7 @@ def partial_functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch
     >>> partial_functional_map(phi, phi, torch.arange(60), torch.arange(60), 4, 8).shape
     torch.Size([4, 8])
     """
-    return torch.linalg.lstsq(phi_s[rows, :k_s], phi_t[images, :k_t]).solution
+    return lstsq(phi_s[rows, :k_s], phi_t[images, :k_t])
 
 
 def _pull_map(Ps: torch.Tensor, Pt_sub: torch.Tensor, C: torch.Tensor, rows: torch.Tensor
