@@ -615,9 +615,13 @@ def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
 
 @pytest.mark.skipif(not (_SHARED / "tosca_remeshed_5k").is_dir(), reason="no shared/data")
 def test_symmetry_pays_for_fixed_samples_victoria23():
-    # regression: victoria23's landmark-free self-map, part identity and part reflection,
-    # won by its low energy (the identity part costs none); the symmetric map now pays for
-    # the samples it leaves in place (fixed_weight), and the reflection wins
+    # regression: victoria23's landmark-free self-map, part identity and part reflection
+    # (fixes 1/3 of the samples; the reflection 1/8), won by its low energy (the identity
+    # part costs none). The share of fixed samples is what tells them apart: without it the
+    # mixture wins by ~2 log units; at twice the default weight the reflection wins by ~2.
+    # At the default weight (10) the two are within 0.05 and the winner depends on the host's
+    # last bits (the reflection on the Intel hosts, the mixture on the AMD one: RESULTS.md,
+    # tenth session), so the default is not asserted here.
     from torchheat.datasets import tosca_remeshed_5k_symmetry
     from torchheat.evaluate import mesh_area
 
@@ -632,7 +636,7 @@ def test_symmetry_pays_for_fixed_samples_victoria23():
         m = corr.map.numpy()
         return float((np.linalg.norm(V[m[gs]] - V[gt], axis=1) / scale < 0.1).mean())
 
-    assert right(symmetry(S)) > 0.9
+    assert right(symmetry(S, fixed_weight=2 * tm.pipeline.SYMMETRY_FIXED_WEIGHT)) > 0.9
     assert right(symmetry(S, fixed_weight=0.0)) < 0.8  # the mixture
 
 
