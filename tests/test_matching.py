@@ -640,6 +640,42 @@ def test_symmetry_pays_for_fixed_samples_victoria23():
     assert right(symmetry(S, fixed_weight=0.0)) < 0.8  # the mixture
 
 
+def test_trimmed_candidate_unfolds_a_half_reflected_map(mirror_pair):
+    # a fold: the identity on y >= 0, the mirror y -> -y below (continuous; orientation +1 on
+    # one half, -1 on the other). Re-seeded from the rows whose neighbourhood keeps the
+    # orientation, ZoomOut recovers the identity; a map that keeps it everywhere gets no twin
+    from torchheat.matching.orientation import _orientation, _triangles
+    from torchheat.matching.select import _trimmed_candidates
+    from torchheat.matching.zoomout import ZoomOutResult
+
+    S, _, _, mp = mirror_pair
+    V = S.mesh.numpy()[0]
+    rows = tm.prepared._fps(S, 400)
+    fold = torch.where(torch.from_numpy(V[:, 1] >= 0), torch.arange(S.n), torch.as_tensor(mp))
+    tri = _triangles(V, rows.numpy())
+    pos = torch.full((S.n,), -1, dtype=torch.int64)
+    pos[rows] = torch.arange(rows.numel())
+
+    def orient(images):
+        return _orientation(S, S, tri, lambda i: images[pos[i]].numpy())
+
+    def cand(m):
+        return {"zo": ZoomOutResult(rows, m[rows], None, 1.0), "zo_orientation": orient(m[rows]),
+                "g": m[rows[:48]], "lms0": [(0, 0)]}
+
+    parent = cand(fold)
+    assert abs(parent["zo_orientation"]) < 0.3
+    out = _trimmed_candidates(S, S, rows, pos, rows[:48], tri, [parent], 30, None, orient)
+    assert len(out) == 1
+    twin = out[0]
+    assert float((twin["zo"].images == rows).double().mean()) > 0.95
+    assert twin["zo_orientation"] > 0.9 and twin["trimmed"] and twin["lms0"] == [(0, 0)]
+    assert torch.equal(twin["g"], twin["zo"].images[:48])
+    assert parent["zo_orientation"] == orient(fold[rows])  # the parent is left as it was
+    assert _trimmed_candidates(S, S, rows, pos, rows[:48], tri, [cand(torch.arange(S.n))], 30,
+                               None, orient) == []
+
+
 def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     # the share of samples a self-map leaves in place, against the mirror plane's geometry:
     # the reflection y -> -y moves a sample by exactly 2 |y|

@@ -31,18 +31,26 @@ def _triangles(V: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return S, a, b
 
 
-def _orientation(source, target, tri, f_of) -> float:
-    """Mean sign of the image orientation of the triangles ``tri``; ``f_of(idx)`` maps."""
+def _orientation_signs(source, target, tri, f_of) -> np.ndarray:
+    """Per triangle of ``tri``: +1 if its image keeps the orientation, -1 if it reverses it,
+    0 if either triangle is degenerate; ``f_of(idx)`` maps."""
     V, _ = source.mesh.numpy()
     W, _ = target.mesh.numpy()
     s, a, b = tri
     fs, fa, fb = f_of(s), f_of(a), f_of(b)
     o_src = np.einsum("ij,ij->i", np.cross(V[a] - V[s], V[b] - V[s]), source.normals[s])
     o_tgt = np.einsum("ij,ij->i", np.cross(W[fa] - W[fs], W[fb] - W[fs]), target.normals[fs])
-    valid = (np.abs(o_src) > 0) & (np.abs(o_tgt) > 0)
+    return np.sign(o_src) * np.sign(o_tgt)
+
+
+def _orientation(source, target, tri, f_of) -> float:
+    """Mean sign of the image orientation of the triangles ``tri`` (degenerate ones left
+    out); ``f_of(idx)`` maps."""
+    sg = _orientation_signs(source, target, tri, f_of)
+    valid = sg != 0
     if not valid.any():
         return 0.0
-    return float(np.mean(np.sign(o_src[valid]) * np.sign(o_tgt[valid])))
+    return float(np.mean(sg[valid]))
 
 
 def orientation_score(
