@@ -207,7 +207,10 @@ def match(
         refined hypotheses (the mirror partner included) are each upsampled by ZoomOut from 16
         to 100 eigenmodes on ``zoomout_samples`` farthest-point samples; every clean
         reflection among them (orientation below -0.5) is composed with the target's
-        self-symmetries (up to two, see ``_mirror_partners``) and upsampled too; the direct
+        self-symmetries (up to two, see ``_mirror_partners``) and upsampled too; every
+        orientation-preserving one gets a twin re-seeded from its samples whose neighbourhood
+        keeps the orientation (``select._trimmed_candidates``: a map right on most of the
+        body but reflected on a limb or the torso; +0.25 s per TOSCA pair); the direct
         map is the one minimising ``log(residual) - orientation_weight * min(orientation,
         0.6)`` (orientation read on the ZoomOut map, where it is clear: +-0.7..0.95), the
         symmetric map the best orientation-reversing one; both are then refined to

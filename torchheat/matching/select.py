@@ -3,9 +3,10 @@
 Every distinct hypothesis of :func:`torchheat.match` (its images of the refinement samples) is
 upsampled by ZoomOut (:mod:`.zoomout`) to ``_ZO_SELECT_K`` modes; the candidates are joined by
 the mirror partners of the orientation-reversing ones (``sigma_N o T``, ``sigma_N`` the target's
-intrinsic symmetry, given by the caller) and by the landmark-free descriptor map (:mod:`.fmap`);
-``log(residual) - orientation_weight * orientation`` decides. The chosen maps are refined to
-every mode and made dense when first asked for.
+intrinsic symmetry, given by the caller), by the landmark-free descriptor map (:mod:`.fmap`)
+and by the orientation-trimmed twin of every orientation-preserving candidate
+(:func:`_trimmed_candidates`); ``log(residual) - orientation_weight * orientation`` decides.
+The chosen maps are refined to every mode and made dense when first asked for.
 """
 
 from __future__ import annotations
