@@ -676,6 +676,21 @@ def test_trimmed_candidate_unfolds_a_half_reflected_map(mirror_pair):
                                None, orient) == []
 
 
+def test_trimmed_twins_option_reaches_the_choice(mirror_pair, monkeypatch):
+    from torchheat.matching import select
+
+    S, T, perm, _ = mirror_pair
+    calls = []
+    real = select._trimmed_candidates
+    monkeypatch.setattr(select, "_trimmed_candidates",
+                        lambda *a, **k: calls.append(len(a[6])) or real(*a, **k))
+    on, off = match(S, T), match(S, T, trimmed_twins=False)
+    assert len(calls) == 1 and calls[0] >= 1  # parents: the orientation-preserving candidates
+    # an exact isometric copy: every candidate keeps the orientation everywhere, no twin
+    assert torch.equal(on.map, off.map)
+    assert float((on.map == torch.as_tensor(perm)).double().mean()) > 0.99
+
+
 def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     # the share of samples a self-map leaves in place, against the mirror plane's geometry:
     # the reflection y -> -y moves a sample by exactly 2 |y|

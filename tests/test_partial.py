@@ -216,9 +216,15 @@ def spot_holed():
     return holed, Mesh(W, G, name="spot-moved"), perm[holed.vertex_map.numpy()]
 
 
-def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed):
+def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed, monkeypatch):
+    from torchheat.matching import select
     from torchheat.matching.partial_scale import filled_piece
     from torchheat.topology import boundary_loops
+
+    twins = []  # the filled way runs without trimmed twins (measured to hurt closed pieces)
+    real = select._trimmed_candidates
+    monkeypatch.setattr(select, "_trimmed_candidates",
+                        lambda *a, **k: twins.append(1) or real(*a, **k))
 
     holed, whole, truth = spot_holed
     filled = filled_piece(holed)
@@ -231,6 +237,7 @@ def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed):
     assert corr.map.shape == (holed.n_vertices,)  # the piece's own vertices only
     assert all(a < holed.n_vertices for a, _ in corr.landmarks)
     assert corr.info["partial"]["scale"] == "filled"
+    assert twins == []
     assert corr.info["partial"]["filled_vertices"] == filled.n_vertices - holed.n_vertices
     W, _ = whole.numpy()
     err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()

@@ -398,7 +398,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
         part_kw["partial_margin"] = args.partial_margin
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
-                 descriptor_seed=args.descriptor_seed, **part_kw)
+                 descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
+                 **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -748,6 +749,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "shapes' wave kernel signatures with the orientation-preserving term) "
                         "from the ZoomOut choice; with --partial, the partial functional map "
                         "that seeds and scores the piece's hypotheses")
+    m.add_argument("--no-trimmed-twins", dest="trimmed_twins", action="store_false",
+                   help="leave out the orientation-trimmed twins of the ZoomOut candidates "
+                        "(each re-seeded from its samples whose neighbourhood keeps the "
+                        "orientation)")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

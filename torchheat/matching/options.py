@@ -36,3 +36,4 @@ class _Options:
     zoomout_hypotheses: int = 8
     partial_ratio: float | None = None  # area(source) / area(target) of a partial match
     descriptor_seed: bool = True
+    trimmed_twins: bool = True

@@ -231,7 +231,9 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     with threads(kw["num_threads"]):
         fsrc = src if filled is src.mesh else _as_prepared(filled, **pkw)
     t_prep = time.perf_counter() - t0
-    full = match_fn(fsrc, _role_copy(tgt), **{**kw, "partial": False})
+    # no trimmed twins: measured, they hurt the closed pieces (SHREC'16 holes 81.4 -> 77.8 %;
+    # david_10 97 -> 13 %), whose patches are not part of the whole's surface
+    full = match_fn(fsrc, _role_copy(tgt), **{**kw, "partial": False, "trimmed_twins": False})
     n = src.n
     info = full.info
     if info.get("p") is not None and info["p"] >= n:

@@ -131,7 +131,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
                                            targets, orient)
             timings["descriptor_seed"] = time.perf_counter() - t_d
-        if opt.orientation and _TRIM:
+        if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
             parents = [r for r in cands if r["zo_orientation"] > 0]
             cands += _trimmed_candidates(src, tgt, rows, pos, samples, tri, parents, k_sel,
@@ -155,10 +155,10 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     return direct, sym, diag
 
 
-#: every orientation-preserving ZoomOut candidate gets a trimmed twin (_trimmed_candidates);
-#: measured on the 284 TOSCA pairs: only those scoring within 0.3 of the best, half the cost,
-#: gave 97.9 % against 98.0 % (the twins that win most often have low-reading parents)
-_TRIM = True
+# ``match(trimmed_twins=True)``: every orientation-preserving ZoomOut candidate gets a trimmed
+# twin (_trimmed_candidates); measured on the 284 TOSCA pairs: only those scoring within 0.3
+# of the best, half the cost, gave 97.9 % against 98.0 % (the twins that win most often have
+# low-reading parents)
 _TRIM_K = 30  # ZoomOut rows over which a row's local orientation is averaged
 _TRIM_MIN = 40  # fewest rows a trimmed candidate is seeded from
 
