@@ -665,15 +665,16 @@ def test_trimmed_candidate_unfolds_a_half_reflected_map(mirror_pair):
 
     parent = cand(fold)
     assert abs(parent["zo_orientation"]) < 0.3
-    out = _trimmed_candidates(S, S, rows, pos, rows[:48], tri, [parent], 30, None, orient)
+    out = _trimmed_candidates(S, S, rows, pos, torch.arange(48), tri, [parent], 30, None, orient)
     assert len(out) == 1
     twin = out[0]
     assert float((twin["zo"].images == rows).double().mean()) > 0.95
     assert twin["zo_orientation"] > 0.9 and twin["trimmed"] and twin["lms0"] == [(0, 0)]
     assert torch.equal(twin["g"], twin["zo"].images[:48])
     assert parent["zo_orientation"] == orient(fold[rows])  # the parent is left as it was
-    assert _trimmed_candidates(S, S, rows, pos, rows[:48], tri, [cand(torch.arange(S.n))], 30,
-                               None, orient) == []
+    identity = cand(torch.arange(S.n))
+    assert _trimmed_candidates(S, S, rows, pos, torch.arange(48), tri, [identity], 30, None,
+                               orient) == []
 
 
 def test_trimmed_twins_option_reaches_the_choice(mirror_pair, monkeypatch):

@@ -134,7 +134,8 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
             parents = [r for r in cands if r["zo_orientation"] > 0]
-            cands += _trimmed_candidates(src, tgt, rows, pos, samples, tri, parents, k_sel,
+            at = pos[samples] if bool((pos[samples] >= 0).all()) else None
+            cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
                                          targets, orient)
             timings["zoomout_trim"] = time.perf_counter() - t_t
 
@@ -164,7 +165,7 @@ _TRIM_MIN = 40  # fewest rows a trimmed candidate is seeded from
 
 
 def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                        pos: torch.Tensor, samples: torch.Tensor, tri: tuple,
+                        pos: torch.Tensor, at_samples: torch.Tensor | None, tri: tuple,
                         parents: list[dict], k_sel: int,
                         targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
                         ) -> list[dict]:
@@ -179,21 +180,24 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     (:func:`~torchheat.matching.orientation._orientation_signs`); the rows reading > 0 seed
     a ZoomOut from ``_ZO_START_K`` modes, so the functional map of the consistent part decides
     the rest. Added beside its parent (the score decides); skipped when fewer than
-    ``_TRIM_MIN`` rows or more than 99 % of them are kept. Cost: one ZoomOut per parent
-    (~0.1 s at 1000 rows, 2000 targets, 16 -> 100 modes, one thread).
+    ``_TRIM_MIN`` rows or more than 99 % of them are kept. ``tri``: the orientation
+    triangles of ``rows`` (:func:`~torchheat.matching.orientation._triangles`, one per row, in
+    row order); ``at_samples``: positions of the refinement samples in ``rows`` (the twin's
+    ``"g"``; None keeps the parent's). Cost: one ZoomOut per parent (~0.1 s at 1000 rows,
+    2000 targets, 16 -> 100 modes, one thread).
     """
     Vs, _ = src.mesh.numpy()
     r_np = rows.numpy()
     _, nb = cKDTree(Vs[r_np]).query(Vs[r_np], k=min(_TRIM_K, len(r_np)))
     phi_s, phi_t = _bases(src, tgt)
-    at_samples = pos[samples] if bool((pos[samples] >= 0).all()) else None
     out: list[dict] = []
     for r in parents:
         images = r["zo"].images
         sg = _orientation_signs(src, tgt, tri, lambda i, f=images: f[pos[i]].numpy())
-        keep = torch.from_numpy(sg[nb].mean(axis=1) > 0)
-        if int(keep.sum()) < _TRIM_MIN or float(keep.double().mean()) >= 0.99:
+        keep_np = sg[nb].mean(axis=1) > 0  # per row: its neighbourhood keeps the orientation
+        if keep_np.sum() < _TRIM_MIN or keep_np.mean() >= 0.99:
             continue
+        keep = torch.from_numpy(keep_np)
         zo = zoomout(phi_s, phi_t, rows[keep], images[keep], rows, k_start=_ZO_START_K,
                      k_end=k_sel, step=_ZO_STEP, targets=targets)
         new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "trimmed": True}
