@@ -189,3 +189,29 @@ def test_weighted_rectangular_solve_is_the_energy_minimum():
     e0 = energy(C)
     for _ in range(20):
         assert energy(C + rng.standard_normal(C.shape) * 1e-3) > e0
+
+
+def test_landmark_map_turns_a_thin_reflection_into_the_direct_map():
+    from torchheat.matching.prepared import _fps
+    from torchheat.matching.zoomout import zoomout
+
+    # thin in y: the reflection moves every point by less than the shape's thickness, as a
+    # body's front/back reflection does
+    V, F = mirror_mesh(4, scale=(1.0, 0.12, 0.6))
+    mp = mirror_permutation(V)
+    W, G, perm = moved_copy(V, F, seed=3)
+    S = torchheat.prepare(torchheat.Mesh(V, F), k=60)
+    T = torchheat.prepare(torchheat.Mesh(W, G), k=60)
+    phi_s, phi_t = S.hk.eigenvectors, T.hk.eigenvectors
+    rows = _fps(S, 400)
+    p = rows[:20]
+    for pairs in (perm, perm[mp]):  # the direct map's point pairs, then the reflection's
+        C = fmap.landmark_functional_map(S, T, p, torch.from_numpy(pairs[p.numpy()]), k=20)
+        j = spectral_map(phi_s, phi_t, C, rows)[1]
+        zo = zoomout(phi_s, phi_t, rows, j, rows, k_start=20, k_end=60, step=8)
+        f = spectral_map(phi_s, phi_t, zo.C)[1].numpy()
+        assert (f == perm).mean() > 0.99  # the direct map (a known permutation) both times
+    # control: ZoomOut from the reflection's pairs alone keeps the reflection
+    zo = zoomout(phi_s, phi_t, p, torch.from_numpy(perm[mp][p.numpy()]), rows, k_start=16,
+                 k_end=60, step=8)
+    assert (spectral_map(phi_s, phi_t, zo.C)[1].numpy() == perm[mp]).mean() > 0.99

@@ -38,13 +38,14 @@ def moved_copy(V, F, seed):
     return W, perm[F], perm
 
 
-def mirror_mesh(subdivisions=3):
-    """Bumpy, asymmetric in x and z, exactly symmetric under y -> -y (vertices and faces)."""
+def mirror_mesh(subdivisions=3, scale=(1.0, 0.7, 0.5)):
+    """Bumpy, asymmetric in x and z, exactly symmetric under y -> -y (vertices and faces);
+    ``scale``: the axes' lengths before the bumps."""
     m = trimesh.creation.icosphere(subdivisions)
     V = np.array(m.vertices)
     x, y, z = V.T
     s = 1 + 0.15 * np.sin(3 * x + 1) * np.cos(2 * z) + 0.1 * np.cos(4 * y**2 + x) + 0.12 * z * x
-    V = V * np.array([1.0, 0.7, 0.5]) * s[:, None]
+    V = V * np.array(scale) * s[:, None]
     V[:, 0] += 0.2 * z**2
     return V, np.asarray(m.faces, dtype=np.int64)
 

@@ -228,3 +228,27 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
         assert len(diag) >= 2  # the mirror map and its partner(s)
     else:
         assert right < 0.5 and direct["zo_orientation"] < 0  # the mirror map stays
+
+
+def test_tear_reads_a_swap_of_two_parts_and_not_a_rigid_motion(spot_pair):
+    from torchheat.matching.select import _TEAR_RADIUS, _Tear
+
+    S, T, perm = spot_pair
+    rows = _fps(S, 500)
+    tear = _Tear(S, T, rows)
+    direct = perm[rows]
+    assert tear(direct) == 0.0  # the copy is rigidly moved: neighbours stay neighbours
+    # swap the images of two far-apart groups of rows (a part mapped onto another part)
+    V, _ = S.mesh.numpy()
+    P = V[rows.numpy()]
+    a = np.argsort(P[:, 0])[:40]  # one end of the cow
+    b = np.argsort(-P[:, 0])[:40]  # the other end
+    swapped = direct.clone()
+    swapped[a], swapped[b] = direct[b], direct[a]
+    t = tear(swapped)
+    # the torn pairs: every neighbour pair with one row in a swapped group and one outside
+    Q = T.mesh.numpy()[0][swapped.numpy()]
+    nb = tear.b.reshape(len(P), -1)
+    far = np.linalg.norm(Q[:, None] - Q[nb], axis=2) > _TEAR_RADIUS * math.sqrt(T.mesh.area())
+    assert t == pytest.approx(far.mean())
+    assert 0.02 < t < 0.5

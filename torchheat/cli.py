@@ -399,7 +399,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
                  descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
-                 **part_kw)
+                 reoriented=args.reoriented, **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -753,6 +753,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave out the orientation-trimmed twins of the ZoomOut candidates "
                         "(each re-seeded from its samples whose neighbourhood keeps the "
                         "orientation)")
+    m.add_argument("--no-reoriented", dest="reoriented", action="store_false",
+                   help="leave out the reoriented twins of the best-aligned ZoomOut candidates "
+                        "(each re-fitted as an orientation-preserving functional map that keeps "
+                        "where its points go) and the tear term of the ZoomOut score")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

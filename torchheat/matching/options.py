@@ -37,3 +37,4 @@ class _Options:
     partial_ratio: float | None = None  # area(source) / area(target) of a partial match
     descriptor_seed: bool = True
     trimmed_twins: bool = True
+    reoriented: bool = True

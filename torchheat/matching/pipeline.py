@@ -95,6 +95,7 @@ def match(
     zoomout_hypotheses: int = 8,
     descriptor_seed: bool = True,
     trimmed_twins: bool = True,
+    reoriented: bool = True,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
     partial_scale: str = "auto",
@@ -211,9 +212,11 @@ def match(
         self-symmetries (up to two, see ``_mirror_partners``) and upsampled too; every
         orientation-preserving one gets a twin re-seeded from its samples whose neighbourhood
         keeps the orientation (``select._trimmed_candidates``: a map right on most of the
-        body but reflected on a limb or the torso; +0.25 s per TOSCA pair); the direct
-        map is the one minimising ``log(residual) - orientation_weight * min(orientation,
-        0.6)`` (orientation read on the ZoomOut map, where it is clear: +-0.7..0.95), the
+        body but reflected on a limb or the torso; +0.25 s per TOSCA pair); the 4
+        best-aligned get a reoriented twin (``reoriented``); the direct
+        map is the one minimising ``log(residual) + 10 tear - orientation_weight *
+        min(orientation, 0.6)`` (orientation read on the ZoomOut map, where it is clear:
+        +-0.7..0.95; ``tear`` only with ``reoriented``), the
         symmetric map the best orientation-reversing one; both are then refined to
         ``zoomout_k`` modes (default: all eigenpairs of the shapes) and made dense from the
         functional map. False: the
@@ -226,6 +229,17 @@ def match(
         TOSCA 284 pairs: 97.2 -> 98.0 % under 0.25, SCAPE 50: 91.6 -> 92.5 %. Off in the filled
         way of a piece (``partial_scale="filled"``/``"auto"``), where it was measured to hurt:
         SHREC'16 holes 81.4 -> 77.8 % (RESULTS.md, tenth session).
+    reoriented : bool
+        (``zoomout=True``, two whole shapes) Give each of the 4 best-aligned ZoomOut
+        candidates (least ``log(residual) + 10 tear``) a reoriented twin: an
+        orientation-preserving functional map that keeps where the candidate sends its points
+        (:func:`~torchheat.matching.fmap.landmark_functional_map`), upsampled by ZoomOut, so
+        that a map that is right part by part but mapped front to back (orientation-reversing)
+        becomes the direct map instead of leaving its left/right mirror, a half-turn, to win;
+        and add ``10 tear`` to the score, ``tear`` the share of neighbouring samples whose
+        images are torn apart (``select._Tear``: a map with two parts swapped). TOSCA 284
+        pairs: 97.8 -> 98.8 % under 0.25, mean 0.036 -> 0.028 (RESULTS.md, eleventh
+        session; ``--no-reoriented``).
     descriptor_seed : bool
         (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
         30 x 30 functional map of the shapes' wave kernel signatures with the
@@ -403,7 +417,7 @@ def match(
                 num_threads=num_threads, final_map=final_map, use_hks=use_hks, engine=engine,
                 zoomout=zoomout, zoomout_samples=zoomout_samples, zoomout_k=zoomout_k,
                 zoomout_hypotheses=zoomout_hypotheses, descriptor_seed=descriptor_seed,
-                trimmed_twins=trimmed_twins,
+                trimmed_twins=trimmed_twins, reoriented=reoriented,
                 partial_ratio=None if part is None else part.ratio)
             out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
                           timings)

@@ -4,8 +4,10 @@ Every distinct hypothesis of :func:`torchheat.match` (its images of the refineme
 upsampled by ZoomOut (:mod:`.zoomout`) to ``_ZO_SELECT_K`` modes; the candidates are joined by
 the mirror partners of the orientation-reversing ones (``sigma_N o T``, ``sigma_N`` the target's
 intrinsic symmetry, given by the caller), by the landmark-free descriptor map (:mod:`.fmap`)
-and by the orientation-trimmed twin of every orientation-preserving candidate
-(:func:`_trimmed_candidates`); ``log(residual) - orientation_weight * orientation`` decides.
+by the orientation-trimmed twin of every orientation-preserving candidate
+(:func:`_trimmed_candidates`) and by the reoriented twin of the best-aligned ones
+(:func:`_reoriented_candidates`); ``log(residual) + tear - orientation_weight * orientation``
+decides (:class:`_Tear`: parts torn apart).
 The chosen maps are refined to every mode and made dense when first asked for.
 """
 
@@ -20,7 +22,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..heat import threads
-from .fmap import descriptor_functional_map
+from .fmap import descriptor_functional_map, landmark_functional_map
 from .options import _Options
 from .orientation import _orientation, _orientation_signs, _triangles
 from .partial import dense_partial_map, partial_zoomout
@@ -112,10 +114,11 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         return _orientation(src, tgt, tri, lambda i: images[pos[i]].numpy())
 
     w = opt.orientation_weight if opt.orientation else 0.0
+    tear = _Tear(src, tgt, rows, _TEAR_WEIGHT if opt.reoriented else 0.0)
 
     def score(r: dict, sign: float) -> float:
         o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
-        return math.log(max(r["zo"].residual, 1e-300)) - w * o
+        return _base_score(r, tear) - w * o
 
     with threads(opt.num_threads):
         for r in cands:
@@ -138,6 +141,12 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
                                          targets, orient)
             timings["zoomout_trim"] = time.perf_counter() - t_t
+        if opt.orientation and opt.reoriented:
+            t_r = time.perf_counter()
+            at = pos[samples] if bool((pos[samples] >= 0).all()) else None
+            cands += _reoriented_candidates(src, tgt, rows, at, cands, k_sel, targets, orient,
+                                            tear)
+            timings["zoomout_reorient"] = time.perf_counter() - t_r
 
     direct = min(cands, key=lambda r: score(r, 1.0))
     rest = [r for r in cands if r is not direct
@@ -146,7 +155,9 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     # diagnostics: (rows, images, residual, orientation, chosen, landmark-free) of every
     # ZoomOut candidate
     diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
-             bool(r.get("descriptor_seed"))) for r in cands]
+             bool(r.get("descriptor_seed")), r.get("zo_tear", float("nan")),
+             "reoriented" if r.get("reoriented") else "trimmed" if r.get("trimmed") else "")
+            for r in cands]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for r in (direct, sym):
@@ -154,6 +165,86 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
     timings["zoomout"] = time.perf_counter() - t0
     return direct, sym, diag
+
+
+_TEAR_WEIGHT = 10.0  # weight of the tear (share of torn neighbour pairs) in the ZoomOut score
+_TEAR_NEIGHBOURS = 6  # nearest ZoomOut rows of each row whose images are compared
+_TEAR_RADIUS = 0.1  # images farther apart than this (x sqrt(area(N))) make a torn pair
+
+
+class _Tear:
+    """The tear of a ZoomOut candidate: the share of neighbouring source rows (each row and
+    its ``_TEAR_NEIGHBOURS`` nearest rows, ~0.05 sqrt(area) apart for 500 farthest-point rows)
+    whose images lie more than ``_TEAR_RADIUS sqrt(area(N))`` apart (Euclidean). A map that
+    swaps two parts (an arm for the other, a head turned to the mirror side) leaves the rest
+    in place and is torn along the seam; its ZoomOut residual, an average over the rows, can be
+    lower than the right map's (measured on TOSCA victoria pairs; RESULTS.md, eleventh
+    session). Continuous maps read ~0; a seam around a limb ~0.01-0.05."""
+
+    def __init__(self, src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                 weight: float = _TEAR_WEIGHT) -> None:
+        self.weight = weight
+        Vs, _ = src.mesh.numpy()
+        self.Vt, _ = tgt.mesh.numpy()
+        P = Vs[rows.numpy()]
+        _, nb = cKDTree(P).query(P, k=min(_TEAR_NEIGHBOURS + 1, len(P)))
+        self.a = np.repeat(np.arange(len(P)), nb.shape[1] - 1)
+        self.b = nb[:, 1:].ravel()
+        self.radius = _TEAR_RADIUS * math.sqrt(tgt.mesh.area())
+
+    def __call__(self, images: torch.Tensor) -> float:
+        Q = self.Vt[images.numpy()]
+        return float(np.mean(np.linalg.norm(Q[self.a] - Q[self.b], axis=1) > self.radius))
+
+
+def _base_score(r: dict, tear: _Tear) -> float:
+    """``log(residual) + tear.weight * tear`` of a ZoomOut candidate (the tear memoised)."""
+    if not tear.weight:
+        return math.log(max(r["zo"].residual, 1e-300))
+    if "zo_tear" not in r:
+        r["zo_tear"] = tear(r["zo"].images)
+    return math.log(max(r["zo"].residual, 1e-300)) + tear.weight * r["zo_tear"]
+
+
+_REORIENT_TOP = 4  # candidates of least log(residual) + tear that get a reoriented twin
+_REORIENT_POINTS = 20  # their first rows (farthest points) and images tie the reoriented map
+_REORIENT_K = 30  # size of the reoriented functional map (then ZoomOut to the choice size)
+
+
+def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                           at_samples: torch.Tensor | None, cands: list[dict], k_sel: int,
+                           targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
+                           tear: _Tear) -> list[dict]:
+    """An orientation-preserving twin of each of the ``_REORIENT_TOP`` best-aligned ZoomOut
+    candidates (least ``log(residual) + tear``, whatever their orientation).
+
+    Human bodies have an approximate front/back reflection beside the left/right one: a
+    candidate can be right part by part but mapped front to back (orientation -0.5..-0.8, every
+    point within a body's thickness of its true image), and its left/right mirror partner is
+    then a half-turn (left/right and front/back swapped together, orientation-preserving),
+    which the score took for the direct map (measured on the failing SCAPE and TOSCA michael
+    pairs). The twin keeps where the candidate sends the parts and lets the orientation term
+    decide which way they face: :func:`~torchheat.matching.fmap.landmark_functional_map` of the
+    first ``_REORIENT_POINTS`` rows and their images, then ZoomOut from ``_REORIENT_K`` to
+    ``k_sel`` modes. Twins of candidates that were already right come out right, often finer.
+    Added beside the others (the score decides). Cost: ~0.08 s per twin (TOSCA 5k)."""
+    phi_s, phi_t = _bases(src, tgt)
+    top = sorted(cands, key=lambda r: _base_score(r, tear))[:_REORIENT_TOP]
+    k0 = min(_REORIENT_K, k_sel)
+    out: list[dict] = []
+    for r in top:
+        im = r["zo"].images
+        C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS], im[:_REORIENT_POINTS],
+                                    k=k0)
+        j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
+        zo = zoomout(phi_s, phi_t, rows, targets[j], rows, k_start=k0, k_end=k_sel,
+                     step=_ZO_STEP, targets=targets)
+        new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "reoriented": True}
+        new.pop("zo_tear", None)
+        if at_samples is not None:
+            new["g"] = zo.images[at_samples]
+        out.append(new)
+    return out
 
 
 # ``match(trimmed_twins=True)``: every orientation-preserving ZoomOut candidate gets a trimmed
