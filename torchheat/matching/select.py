@@ -115,6 +115,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
     w = opt.orientation_weight if opt.orientation else 0.0
     tear = _Tear(src, tgt, rows, _TEAR_WEIGHT if opt.reoriented else 0.0)
+    memo: dict = {}  # the pair's functional-map Hessians (descriptor and reoriented maps)
 
     def score(r: dict, sign: float) -> float:
         o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
@@ -132,7 +133,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
             t_d = time.perf_counter()
             cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
-                                           targets, orient)
+                                           targets, orient, memo)
             timings["descriptor_seed"] = time.perf_counter() - t_d
         if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
@@ -145,7 +146,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             t_r = time.perf_counter()
             at = pos[samples] if bool((pos[samples] >= 0).all()) else None
             cands += _reoriented_candidates(src, tgt, rows, at, cands, k_sel, targets, orient,
-                                            tear)
+                                            tear, memo)
             timings["zoomout_reorient"] = time.perf_counter() - t_r
 
     direct = min(cands, key=lambda r: score(r, 1.0))
@@ -214,7 +215,7 @@ _REORIENT_K = 30  # size of the reoriented functional map (then ZoomOut to the c
 def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                            at_samples: torch.Tensor | None, cands: list[dict], k_sel: int,
                            targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                           tear: _Tear) -> list[dict]:
+                           tear: _Tear, memo: dict | None = None) -> list[dict]:
     """An orientation-preserving twin of each of the ``_REORIENT_TOP`` best-aligned ZoomOut
     candidates (least ``log(residual) + tear``, whatever their orientation).
 
@@ -235,7 +236,7 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     for r in top:
         im = r["zo"].images
         C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS], im[:_REORIENT_POINTS],
-                                    k=k0)
+                                    k=k0, memo=memo)
         j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
         zo = zoomout(phi_s, phi_t, rows, targets[j], rows, k_start=k0, k_end=k_sel,
                      step=_ZO_STEP, targets=targets)
@@ -369,8 +370,8 @@ def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Te
 
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                           at_samples: torch.Tensor, cands: list[dict], k_sel: int,
-                          targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
-                          ) -> list[dict]:
+                          targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
+                          memo: dict | None = None) -> list[dict]:
     """One more ZoomOut candidate that no landmark started: the functional map of the
     shapes' wave kernel signatures with the orientation-preserving term
     (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
@@ -378,7 +379,7 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     existing candidate's (as in :func:`_distinct_hypotheses`)."""
     phi_s, phi_t = _bases(src, tgt)
     k = min(_DESCR_K, k_sel)
-    C = descriptor_functional_map(src, tgt, k=k)
+    C = descriptor_functional_map(src, tgt, k=k, memo=memo)
     # seeded like every other candidate: its images of the refinement samples, from
     # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
     # than a comparable landmark hypothesis: measured, it then beat right maps)

@@ -162,6 +162,41 @@ def _sizes(k_start: int, k_end: int, step: int) -> list[int]:
     return [*sizes, k_end]
 
 
+class _RowBasis:
+    """The source basis on ZoomOut's rows, factored once for every step of a ZoomOut.
+
+    Every step solves ``min_C |Phi_M[rows, :k] C - B|`` for a growing ``k``; the Householder
+    QR of ``Phi_M[rows, :k_end]`` serves them all (the QR of the first ``k`` columns is the
+    first ``k`` columns of ``Q`` and the leading block of ``R``), so a step costs one
+    ``(s x k) x (k x k)`` product and a triangular solve instead of a factorisation. The
+    squared row norms of every prefix come from one cumulative sum. A basis that is not of
+    full rank on the rows (a diagonal entry of ``R`` below ``1e-6`` of the largest) falls
+    back to :func:`lstsq`.
+    """
+
+    def __init__(self, phi: torch.Tensor, rows: torch.Tensor, k: int) -> None:
+        self.X = phi[rows, :k].contiguous()
+        self.Q, self.R = torch.linalg.qr(self.X)
+        d = self.R.diagonal().abs()
+        self.full_rank = bool(d.min() > 1e-6 * d.max()) if d.numel() else False
+        self.xx = (self.X * self.X).cumsum(dim=1)
+
+    def functional_map(self, B: torch.Tensor) -> torch.Tensor:
+        """``argmin_C |X[:, :k] C - B|``, ``k = B.shape[1]``."""
+        k = B.shape[1]
+        if not self.full_rank:
+            return lstsq(self.X[:, :k], B)
+        return torch.linalg.solve_triangular(self.R[:k, :k], self.Q[:, :k].T @ B, upper=True)
+
+    def spectral_map(self, phi_t: torch.Tensor, C: torch.Tensor,
+                     memory_bytes: int = 256 * 2**20) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`spectral_map` of the rows (squared distances, target indices)."""
+        k = C.shape[0]
+        Y = phi_t[:, :k] @ C.T.to(phi_t.dtype)
+        return _blocked_argmin(self.X[:, :k], Y, self.xx[:, k - 1], (Y * Y).sum(1),
+                               memory_bytes)
+
+
 def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
             seed_images: torch.Tensor, rows: torch.Tensor, *, k_start: int = 16,
             k_end: int = 100, step: int = 6, targets: torch.Tensor | None = None
@@ -207,12 +242,13 @@ def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
     Ps, Pt = phi_s.to(_ZO_DTYPE), phi_t.to(_ZO_DTYPE)
     tmap = torch.arange(phi_t.shape[0]) if targets is None else targets
     Pt_sub = Pt if targets is None else Pt[targets]
+    rb = _RowBasis(Ps, rows, k_end)
     C = functional_map(Ps, Pt, seed_rows, seed_images, k_start)
-    d2, j = spectral_map(Ps, Pt_sub, C, rows)
+    d2, j = rb.spectral_map(Pt_sub, C)
     images = tmap[j]
     for k in _sizes(k_start, k_end, step)[1:]:
-        C = functional_map(Ps, Pt, rows, images, k)
-        d2, j = spectral_map(Ps, Pt_sub, C, rows)
+        C = rb.functional_map(Pt[images, :k])
+        d2, j = rb.spectral_map(Pt_sub, C)
         images = tmap[j]
     C = functional_map(phi_s, phi_t, rows, images, k_end)  # float64, of the final images
     return ZoomOutResult(rows, images, C, float(d2.double().mean()) / k_end)
