@@ -3,7 +3,9 @@
 Reads the ``results.jsonl`` of batch evaluation runs (``torchheat evaluate``), splits the maps
 into wrong (< 50 % of the evaluated points under 0.25, direct ground truth) and right
 (> 90 %), and prints the ROC curve's area, the suspect flag's recall on wrong maps and its
-false-alarm rate on right ones; writes the ROC curve as a PNG.
+false-alarm rate on right ones; the same for the choice's margin (the best rival's score gap,
+``MapQuality.margin``: a missing margin, no rival, counts as large) and the ambiguous flag,
+where the runs recorded them; writes the ROC curves as a PNG.
 
     python scripts/quality_roc.py out/tosca5k/results.jsonl out/scape/results.jsonl \\
         --png docs/quality_roc.png
@@ -63,6 +65,17 @@ def main() -> None:
         print(f"ROC AUC (right vs wrong by quality): {auc:.3f}")
         print(f"suspect flag: {sus[wrong].mean() * 100:.1f} % of wrong maps flagged, "
               f"{sus[right].mean() * 100:.1f} % of right maps flagged (false alarms)")
+        mg = np.array([np.inf if r.get("margin") is None else r["margin"] for r in recs])
+        has_margin = any(r.get("ambiguous") is not None for r in recs)
+        if has_margin:
+            amb = np.array([bool(r.get("ambiguous")) for r in recs])
+            fpr_m, tpr_m, auc_m = roc(mg[wrong], mg[right])
+            print(f"ROC AUC (right vs wrong by the choice's margin): {auc_m:.3f}")
+            print(f"ambiguous flag: {amb[wrong].mean() * 100:.1f} % of wrong maps flagged, "
+                  f"{amb[right].mean() * 100:.1f} % of right maps flagged")
+            either = amb | sus
+            print(f"suspect or ambiguous: {either[wrong].mean() * 100:.1f} % of wrong maps, "
+                  f"{either[right].mean() * 100:.1f} % of right maps")
         if args.png:
             import matplotlib
 
@@ -74,6 +87,10 @@ def main() -> None:
             ax.plot([0, 1], [0, 1], ":", color="grey")
             ax.scatter([sus[right].mean()], [sus[wrong].mean()], color="red", zorder=3,
                        label="suspect flag (quality < 0.25)")
+            if has_margin:
+                ax.plot(fpr_m, tpr_m, lw=2, label=f"choice margin (AUC {auc_m:.3f})")
+                ax.scatter([amb[right].mean()], [amb[wrong].mean()], color="black",
+                           marker="s", zorder=3, label="ambiguous flag (margin < 0.15)")
             ax.set_xlabel("right maps called wrong (false alarms)")
             ax.set_ylabel("wrong maps detected")
             ax.set_title(f"{right.sum()} right vs {wrong.sum()} wrong maps")

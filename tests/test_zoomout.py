@@ -252,3 +252,27 @@ def test_tear_reads_a_swap_of_two_parts_and_not_a_rigid_motion(spot_pair):
     far = np.linalg.norm(Q[:, None] - Q[nb], axis=2) > _TEAR_RADIUS * math.sqrt(T.mesh.area())
     assert t == pytest.approx(far.mean())
     assert 0.02 < t < 0.5
+
+
+def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
+    from torchheat.matching.quality import AMBIGUOUS_BELOW
+    from torchheat.matching.select import _margin
+    from torchheat.matching.zoomout import ZoomOutResult
+
+    S, T, perm = spot_pair
+    rows = _fps(S, 500)
+    right = perm[rows]
+    shifted = right.roll(1)  # every sample sent to another sample's image: a different map
+    near = right.clone()
+    near[:10] = shifted[:10]  # the same map but for 10 samples: not a rival
+
+    def cand(images, s):
+        return {"zo": ZoomOutResult(rows, images, torch.eye(3), 1.0), "s": s}
+
+    chosen = cand(right, -4.0)
+    cands = [chosen, cand(near, -3.99), cand(shifted, -3.7), cand(shifted, -3.2)]
+    assert _margin(chosen, cands, lambda r: r["s"], T) == pytest.approx(0.3)
+    assert _margin(chosen, cands[:2], lambda r: r["s"], T) is None  # no rival
+    q = map_quality(S, T, perm, margin=0.1)
+    assert q.ambiguous == (0.1 < AMBIGUOUS_BELOW) and not q.suspect
+    assert not map_quality(S, T, perm).ambiguous  # no margin: never ambiguous

@@ -586,6 +586,8 @@ tosca_remeshed_5k_symmetry`).
         "quality": None if quality is None else quality.quality,
         "suspect": None if quality is None else bool(quality.suspect),
         "defect": None if quality is None else quality.defect,
+        "margin": None if quality is None else quality.margin,
+        "ambiguous": None if quality is None else bool(quality.ambiguous),
     }
     part = corr.partial_summary()
     if part:  # how a partial match was made: its area ratio, the way kept and why
@@ -1270,6 +1272,8 @@ def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, 
         "quality": _nanmean([r.get("quality") for r in recs]),
         "suspect": sum(bool(r.get("suspect")) for r in recs)
         if any(r.get("suspect") is not None for r in recs) else None,
+        "ambiguous": sum(bool(r.get("ambiguous")) for r in recs)
+        if any(r.get("ambiguous") is not None for r in recs) else None,
     }
 
 
@@ -1301,8 +1305,8 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
               "flip_pct_under_0.25": 1, "time_match_s": 2, "time_eval_s": 2,
               "time_per_pair_s": 2}
     if any(r.get("quality") is not None for r in rows):
-        head += ["quality", "suspect"]
-        keys += ["quality", "suspect"]
+        head += ["quality", "suspect", "ambiguous"]
+        keys += ["quality", "suspect", "ambiguous"]
         digits["quality"] = 2
     if any(r["distortion"] is not None for r in rows):
         head.append("distortion")
@@ -1313,7 +1317,8 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
              "2011), averaged per pair, then over pairs (every pair weighs the same). "
              "Flip-aware: the direct or the symmetric ground truth, whichever fits the whole "
              "map better. Times: prepare + match, evaluation. Quality: the map's own evidence "
-             "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25.",
+             "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25, "
+             "ambiguous: maps whose best rival (a different whole map) scored within 0.15.",
              ""]
     for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
         sel = [r for r in rows if r["level"] == level]

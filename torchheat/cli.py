@@ -343,6 +343,11 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
                    if q.suspect else "plausible")
         print(f"quality of the {label}: {q.quality:.2f} ({verdict}; isometry defect "
               f"{q.defect:.2f}, 0 = isometric)")
+        if q.margin is not None:
+            note = ("AMBIGUOUS: a different whole map scored nearly as well"
+                    if q.ambiguous else "clear")
+            print(f"margin of the choice: {q.margin:.2f} ({note}; the best rival scored that "
+                  "much worse)")
     timings = corr.info.get("timings", {})
     if timings:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))

@@ -434,9 +434,11 @@ def match(
     # the dense map when the quality is first asked for
     o_dir = direct.get("zo_orientation") if method == "refine" else None
 
+    margin = direct.get("zo_margin") if method == "refine" else None
+
     def quality(corr: Correspondence) -> MapQuality:
         return map_quality(src, tgt, corr.map, o_dir,
-                           ratio=unit_ratio if part is None else part.ratio)
+                           ratio=unit_ratio if part is None else part.ratio, margin=margin)
 
     return Correspondence(
         **_numbering(src, tgt),
