@@ -693,6 +693,31 @@ def test_trimmed_twins_option_reaches_the_choice(mirror_pair, monkeypatch):
     assert float((on.map == torch.as_tensor(perm)).double().mean()) > 0.99
 
 
+def test_reoriented_option_reaches_the_choice(mirror_pair, monkeypatch):
+    from torchheat.matching import select
+
+    S, T, perm, _ = mirror_pair
+    calls = []
+    real = select._reoriented_candidates
+    monkeypatch.setattr(select, "_reoriented_candidates",
+                        lambda *a, **k: calls.append(len(a[4])) or real(*a, **k))
+    on = match(S, T)
+    kinds = [d[7] for d in on.info["zoomout_candidates"]]
+    tears = [d[6] for d in on.info["zoomout_candidates"]]
+    assert calls and calls[0] >= 1  # the candidates the best-aligned are taken from
+    assert 1 <= kinds.count("reoriented") <= select._REORIENT_TOP
+    assert all(t == t for t in tears)  # the tear is read on every candidate (not NaN)
+    off = match(S, T, reoriented=False)
+    assert len(calls) == 1  # not called again
+    assert "reoriented" not in [d[7] for d in off.info["zoomout_candidates"]]
+    # an exact isometric copy: the twins change nothing
+    assert torch.equal(on.map, off.map)
+    assert float((on.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    # the margin of the choice is reported, and an exact copy's choice is not ambiguous
+    assert on.quality.margin is None or on.quality.margin > 0
+    assert not on.quality.ambiguous
+
+
 def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     # the share of samples a self-map leaves in place, against the mirror plane's geometry:
     # the reflection y -> -y moves a sample by exactly 2 |y|

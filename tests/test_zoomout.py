@@ -160,13 +160,19 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
     assert 0.6 < r["quality"] <= 1 and r["orientation"] > 0.5
     assert all(perm[p] == q for p, q in r["landmarks"][:5])
     assert "landmark_search" in r["timings"] and "match total" in r["timings"]
-    assert "descriptor_seed" in r["timings"]
+    assert "descriptor_seed" in r["timings"] and "zoomout_reorient" in r["timings"]
+    assert "margin" in r and r["ambiguous"] is False
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m2.txt"), "--no-zoomout",
                  "--report", str(rep), "--threads", "1"]) == 0
     assert json.loads(rep.read_text())["zoomout"] is False
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m3.txt"),
                  "--no-descriptor-seed", "--report", str(rep), "--threads", "1"]) == 0
     assert "descriptor_seed" not in json.loads(rep.read_text())["timings"]
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m4.txt"),
+                 "--no-reoriented", "--report", str(rep), "--threads", "1"]) == 0
+    assert "zoomout_reorient" not in json.loads(rep.read_text())["timings"]
+    m4 = np.loadtxt(tmp_path / "m4.txt", dtype=np.int64)
+    assert (m4 == perm.numpy()).mean() >= 0.99
     m3 = np.loadtxt(tmp_path / "m3.txt", dtype=np.int64)
     assert (m3 == perm.numpy()).mean() >= 0.99
     m2 = np.loadtxt(tmp_path / "m2.txt", dtype=np.int64)
