@@ -678,14 +678,19 @@ def test_trimmed_candidate_unfolds_a_half_reflected_map(mirror_pair):
                                orient) == []
 
 
-def test_trimmed_twins_option_reaches_the_choice(mirror_pair, monkeypatch):
+def _spy(monkeypatch, name: str, arg: int) -> list[int]:
+    """Record ``len`` of positional argument ``arg`` of each call of ``select.<name>``."""
     from torchheat.matching import select
 
+    calls: list[int] = []
+    real = getattr(select, name)
+    monkeypatch.setattr(select, name, lambda *a, **k: calls.append(len(a[arg])) or real(*a, **k))
+    return calls
+
+
+def test_trimmed_twins_option_reaches_the_choice(mirror_pair, monkeypatch):
     S, T, perm, _ = mirror_pair
-    calls = []
-    real = select._trimmed_candidates
-    monkeypatch.setattr(select, "_trimmed_candidates",
-                        lambda *a, **k: calls.append(len(a[6])) or real(*a, **k))
+    calls = _spy(monkeypatch, "_trimmed_candidates", 6)
     on, off = match(S, T), match(S, T, trimmed_twins=False)
     assert len(calls) == 1 and calls[0] >= 1  # parents: the orientation-preserving candidates
     # an exact isometric copy: every candidate keeps the orientation everywhere, no twin
@@ -697,10 +702,7 @@ def test_reoriented_option_reaches_the_choice(mirror_pair, monkeypatch):
     from torchheat.matching import select
 
     S, T, perm, _ = mirror_pair
-    calls = []
-    real = select._reoriented_candidates
-    monkeypatch.setattr(select, "_reoriented_candidates",
-                        lambda *a, **k: calls.append(len(a[4])) or real(*a, **k))
+    calls = _spy(monkeypatch, "_reoriented_candidates", 4)
     on = match(S, T)
     kinds = [d[7] for d in on.info["zoomout_candidates"]]
     tears = [d[6] for d in on.info["zoomout_candidates"]]
