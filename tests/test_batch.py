@@ -297,3 +297,23 @@ def test_preprocess_command_fills_the_cache_once(tmp_path, capsys):
     assert "3 shapes: 0 computed, 3 already cached" in capsys.readouterr().out
     assert batch.preprocess_main([str(tmp_path / "nothere")]) == 2
     assert "no such config file or folder of meshes" in capsys.readouterr().err
+
+
+@needs_data
+def test_an_ambiguous_choice_records_its_rival_map(monkeypatch):
+    # every choice read as ambiguous: the record scores the rival map like the direct map
+    from torchheat import datasets
+    from torchheat.matching import match, quality
+
+    monkeypatch.setattr(quality, "AMBIGUOUS_BELOW", float("inf"))
+    pair = datasets.tosca_remeshed_5k(root=SHARED, classes=["wolf"])[0]
+    rec = batch.evaluate_pair(pair, {}, eval_points=100)
+    assert rec["ambiguous"] is True and rec["margin"] is not None
+    corr = match(pair.source.mesh, pair.target.mesh)
+    rows = np.unique(np.linspace(0, len(pair.gt_src) - 1, 100).round().astype(np.int64))
+    gs, gt = pair.gt_src.numpy()[rows], pair.gt_tgt.numpy()[rows]
+    err = batch._TargetGeodesics(pair.target.mesh).errors(corr.rival_map.numpy()[gs], [gt])[0]
+    assert rec["rival"]["mean"] == pytest.approx(float(err.mean()), rel=1e-6)
+    assert rec["direct"]["under_0.25"] > 0.9 > rec["rival"]["under_0.25"]  # a different map
+    row = batch._row("overall", "all", [rec, {**rec, "rival": {"under_0.25": 1.0}}])
+    assert row["ambiguous"] == 2 and row["rival_right"] == 1

@@ -720,6 +720,36 @@ def test_reoriented_option_reaches_the_choice(mirror_pair, monkeypatch):
     assert not on.quality.ambiguous
 
 
+def test_rival_map_is_a_different_whole_map(mirror_pair, tmp_path, capsys):
+    from test_cli import write_off
+
+    from torchheat.cli import main
+
+    S, T, perm, mp = mirror_pair
+    corr = match(S, T)
+    assert corr.has_rival_map and corr.report()["rival_map"] is True
+    Vt = T.mesh.numpy()[0]
+    r = 0.1 * math.sqrt(T.mesh.area())
+    agree = np.linalg.norm(Vt[corr.rival_map.numpy()] - Vt[corr.map.numpy()], axis=1) <= r
+    assert agree.mean() < 0.5  # a different whole map, as its definition says
+    assert torch.equal(corr.full_rival_map(), corr.rival_map)  # nothing dropped
+    assert corr.quality.margin > 0 and not corr.quality.ambiguous
+    assert not match(S, T, method="paper").has_rival_map
+    # the command line writes it, in the files' numbering
+    a = write_off(tmp_path / "a.off", *S.mesh.numpy())
+    b = write_off(tmp_path / "b.off", *T.mesh.numpy())
+    out, riv = tmp_path / "m.txt", tmp_path / "rival.txt"
+    assert main(["match", str(a), str(b), "-o", str(out), "--rival-out", str(riv),
+                 "--threads", "1"]) == 0
+    f, g = np.loadtxt(out, dtype=np.int64), np.loadtxt(riv, dtype=np.int64)
+    assert g.shape == (S.n,) and (f == np.asarray(perm)).mean() > 0.99
+    assert np.mean(np.linalg.norm(Vt[g] - Vt[f], axis=1) <= r) < 0.5
+    assert "rival map written to" in capsys.readouterr().out
+    assert main(["match", str(a), str(b), "-o", str(out), "--rival-out",
+                 str(tmp_path / "r2.txt"), "--method", "paper", "--threads", "1"]) == 0
+    assert "had no rival" in capsys.readouterr().err and not (tmp_path / "r2.txt").exists()
+
+
 def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     # the share of samples a self-map leaves in place, against the mirror plane's geometry:
     # the reflection y -> -y moves a sample by exactly 2 |y|

@@ -589,6 +589,15 @@ tosca_remeshed_5k_symmetry`).
         "margin": None if quality is None else quality.margin,
         "ambiguous": None if quality is None else bool(quality.ambiguous),
     }
+    if quality is not None and quality.ambiguous and corr.has_rival_map:
+        # the map the choice passed over, scored like the direct map (only where the choice
+        # was ambiguous: its dense map costs one more nearest-neighbour search)
+        rpred = _to_np(corr.rival_map).astype(np.int64)[gs]
+        if getattr(pair, "gt_bary", None) is not None:
+            rerr = _barycentric_errors(geo, rpred, pair, gs)
+        else:
+            rerr = geo.errors(rpred, [gt])
+        rec["rival"] = _summary(rerr[0])
     part = corr.partial_summary()
     if part:  # how a partial match was made: its area ratio, the way kept and why
         rec["partial"] = part
@@ -1274,6 +1283,9 @@ def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, 
         if any(r.get("suspect") is not None for r in recs) else None,
         "ambiguous": sum(bool(r.get("ambiguous")) for r in recs)
         if any(r.get("ambiguous") is not None for r in recs) else None,
+        # ambiguous pairs whose rival map (Correspondence.rival_map) is right (>= 90 % < 0.25)
+        "rival_right": sum((r.get("rival") or {}).get("under_0.25", 0.0) >= 0.9 for r in recs)
+        if any(r.get("ambiguous") is not None for r in recs) else None,
     }
 
 
@@ -1305,8 +1317,8 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
               "flip_pct_under_0.25": 1, "time_match_s": 2, "time_eval_s": 2,
               "time_per_pair_s": 2}
     if any(r.get("quality") is not None for r in rows):
-        head += ["quality", "suspect", "ambiguous"]
-        keys += ["quality", "suspect", "ambiguous"]
+        head += ["quality", "suspect", "ambiguous", "rival right"]
+        keys += ["quality", "suspect", "ambiguous", "rival_right"]
         digits["quality"] = 2
     if any(r["distortion"] is not None for r in rows):
         head.append("distortion")
@@ -1318,7 +1330,8 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
              "Flip-aware: the direct or the symmetric ground truth, whichever fits the whole "
              "map better. Times: prepare + match, evaluation. Quality: the map's own evidence "
              "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25, "
-             "ambiguous: maps whose best rival (a different whole map) scored within 0.15.",
+             "ambiguous: maps whose best rival (a different whole map) scored within 0.15, "
+             "rival right: ambiguous maps whose rival map is right (>= 90 % under 0.25).",
              ""]
     for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
         sel = [r for r in rows if r["level"] == level]

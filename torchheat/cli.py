@@ -347,7 +347,7 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
             note = ("AMBIGUOUS: a different whole map scored nearly as well"
                     if q.ambiguous else "clear")
             print(f"margin of the choice: {q.margin:.2f} ({note}; the best rival scored that "
-                  "much worse)")
+                  "much worse; --rival-out writes it)")
     timings = corr.info.get("timings", {})
     if timings:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))
@@ -375,6 +375,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     out = _check_output(Path(args.output), "map")
     sym_out = _check_output(Path(args.symmetric_out), "symmetric map") \
         if args.symmetric_out else None
+    rival_out = _check_output(Path(args.rival_out), "rival map") if args.rival_out else None
     png = _check_output(Path(args.png), "PNG") if args.png else None
     method = args.method or ("paper" if args.landmarks > 1 else "refine")
     if args.landmarks < 1:
@@ -408,10 +409,16 @@ def _cmd_match(args: argparse.Namespace) -> int:
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
+    if rival_out is not None:
+        corr.rival_map  # noqa: B018
     elapsed = time.perf_counter() - t_start
     corr.info["timings"] = _timings(t_prep, corr)
     if sym_out is not None and corr.symmetric_map is None:
         print(f"{PROG}: warning: no symmetric map was found; {sym_out} is not written",
+              file=sys.stderr)
+    if rival_out is not None and corr.rival_map is None:
+        print(f"{PROG}: warning: the choice had no rival (a different whole map; only the "
+              f"default method with ZoomOut has them); {rival_out} is not written",
               file=sys.stderr)
     with _outputs() as outs:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
@@ -420,6 +427,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
                        lambda p: _write_report(p, corr, args.source, args.target))
         if sym_out is not None and corr.symmetric_map is not None:
             outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
+        if rival_out is not None and corr.rival_map is not None:
+            outs.stage(rival_out, lambda p: write_map(p, corr.full_rival_map()))
         if png is not None:
             from .viz import color_transfer
 
@@ -435,6 +444,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
                                      if dropped else ""))
     if sym_out is not None and corr.symmetric_map is not None:
         print(f"symmetric map written to {sym_out}")
+    if rival_out is not None and corr.rival_map is not None:
+        print(f"rival map written to {rival_out}")
     if png is not None:
         print(f"colour transfer written to {png}")
     return 0
@@ -734,6 +745,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output map file")
     m.add_argument("--symmetric-out", metavar="SYM.txt", default=None,
                    help="also write the intrinsically symmetric alternative map, if found")
+    m.add_argument("--rival-out", metavar="RIVAL.txt", default=None,
+                   help="also write the best different whole map the choice passed over "
+                        "(the map behind the printed margin; look at it when the choice is "
+                        "AMBIGUOUS)")
     m.add_argument("--landmark", type=int, nargs="+", metavar=("P", "Q"), default=None,
                    help="fix the source landmark P (0-based), or the pair P -> Q (skips the "
                         "landmark search); default: the strongest feature point")
@@ -744,7 +759,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "augmentation; 'paper': the paper's pipeline (default: refine, or "
                         "paper when --landmarks > 1)")
     _add_common(m)
-    _add_largest_component(m, "map (and --symmetric-out)")
+    _add_largest_component(m, "map (and --symmetric-out, --rival-out)")
     m.add_argument("--png", metavar="PATH", default=None,
                    help="also write a colour-transfer picture of the map (of the matched "
                         "components with --largest-component)")

@@ -450,6 +450,7 @@ def match(
         symmetric_landmarks=None if sym is None else sym["landmarks"],
         orientation=orient,
         quality=quality if final_map else None,
+        rival_map=direct.get("rival_map") if method == "refine" else None,
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "hypothesis_images": hyp_images, "refine_samples": samples,
@@ -701,6 +702,11 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             (int(a), int(b)) for a, b in zip(samples.tolist(), r["g"].tolist(),
                                              strict=True)
         ]
+    rival = direct.get("zo_rival")
+    if rival is not None and opt.final_map and opt.partial_ratio is None:
+        # the best different whole map (the margin's rival), at the choice's size
+        direct["rival_map"] = _dense_spectral(src, tgt, rival["zo"].C, opt.num_threads,
+                                              timings)
     orient = direct.get("zo_orientation", direct["orientation"])
     timings["dense_map"] = time.perf_counter() - t0
     return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,

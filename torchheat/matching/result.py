@@ -51,6 +51,14 @@ class Correspondence:
         first access; ``quality.quality`` in [0, 1], higher is better.
     suspect : bool or None
         ``quality.suspect``: the map is probably wrong (not near-isometric, or the mirror).
+    rival_map : torch.Tensor or None
+        The best *different* whole map the choice passed over (its images agree with the
+        direct map's within 0.1 sqrt(area) on fewer than half of the ZoomOut samples; the
+        map behind :attr:`MapQuality.margin <torchheat.matching.quality.MapQuality>`), dense
+        at the size the candidates were compared at (100 modes); None without one (method
+        ``"paper"``, ``zoomout=False``, partial matches). When the choice is ambiguous
+        (``quality.ambiguous``), this is the map to look at: on TOSCA 284 + SCAPE 50 the
+        direct or the rival map is right on all but 2 of the 11 ambiguous pairs (RESULTS.md).
 
     Notes
     -----
@@ -86,8 +94,10 @@ class Correspondence:
         target_vertex_map: torch.Tensor | None = None,
         n_source_input: int | None = None,
         quality: MapQuality | Callable[[Correspondence], MapQuality] | None = None,
+        rival_map: torch.Tensor | Callable[[], torch.Tensor] | None = None,
     ) -> None:
         self._map = map
+        self._rival_map = rival_map
         self._quality = quality
         self._symmetric_map = symmetric_map
         self.landmarks = landmarks
@@ -129,6 +139,7 @@ class Correspondence:
             "orientation": None if o != o else float(o),
             **({} if q is None else q.as_dict()),
             "symmetric_map": self.has_symmetric_map,
+            "rival_map": self.has_rival_map,
             "timings": {k: float(v) for k, v in self.info.get("timings", {}).items()},
             **({"partial": part} if (part := self.partial_summary()) else {}),
         }
@@ -169,6 +180,17 @@ class Correspondence:
         """Whether a symmetric map was found (without computing it)."""
         return self._symmetric_map is not None
 
+    @property
+    def rival_map(self) -> torch.Tensor | None:
+        if callable(self._rival_map):
+            self._rival_map = self._rival_map()
+        return self._rival_map
+
+    @property
+    def has_rival_map(self) -> bool:
+        """Whether the choice had a rival (a different whole map), without computing it."""
+        return self._rival_map is not None
+
     def full_map(self) -> torch.Tensor:
         """The direct map in the numbering of the input files.
 
@@ -206,6 +228,17 @@ class Correspondence:
             there is no symmetric map.
         """
         return self._in_files(self.symmetric_map)
+
+    def full_rival_map(self) -> torch.Tensor | None:
+        """:attr:`rival_map` in the numbering of the input files (see :meth:`full_map`).
+
+        Returns
+        -------
+        torch.Tensor or None
+            int64, shape (n_source_input,), ``-1`` for dropped source vertices; None when
+            the choice had no rival.
+        """
+        return self._in_files(self.rival_map)
 
     def _in_files(self, f: torch.Tensor | None) -> torch.Tensor | None:
         if f is None:

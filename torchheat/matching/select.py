@@ -150,7 +150,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             timings["zoomout_reorient"] = time.perf_counter() - t_r
 
     direct = min(cands, key=lambda r: score(r, 1.0))
-    direct["zo_margin"] = _margin(direct, cands, lambda r: score(r, 1.0), tgt)
+    direct["zo_margin"], direct["zo_rival"] = _rival(direct, cands, lambda r: score(r, 1.0), tgt)
     rest = [r for r in cands if r is not direct
             and (not opt.orientation or r["zo_orientation"] < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
@@ -253,20 +253,31 @@ _RIVAL_RADIUS = 0.1  # x sqrt(area(N)): sample images this close agree
 _RIVAL_AGREE = 0.5  # a candidate agreeing with the chosen one on fewer samples is a rival
 
 
-def _margin(chosen: dict, cands: list[dict], score: Callable[[dict], float],
-            tgt: PreparedShape) -> float | None:
-    """How much worse the best rival of the chosen candidate scored: a rival is a different
-    whole map (its images of the ZoomOut rows agree with the chosen one's within
-    ``_RIVAL_RADIUS sqrt(area(N))`` on fewer than ``_RIVAL_AGREE`` of them). None without a
-    rival. Reported as :attr:`~torchheat.matching.quality.MapQuality.margin`."""
+def _rival(chosen: dict, cands: list[dict], score: Callable[[dict], float],
+           tgt: PreparedShape) -> tuple[float | None, dict | None]:
+    """The best rival of the chosen candidate and how much worse it scored: a rival is a
+    different whole map (its images of the ZoomOut rows agree with the chosen one's within
+    ``_RIVAL_RADIUS sqrt(area(N))`` on fewer than ``_RIVAL_AGREE`` of them). ``(None, None)``
+    without a rival. The gap is :attr:`~torchheat.matching.quality.MapQuality.margin`, the
+    rival's dense map :attr:`~torchheat.matching.result.Correspondence.rival_map`."""
     Vt, _ = tgt.mesh.numpy()
     radius = _RIVAL_RADIUS * math.sqrt(tgt.mesh.area())
     mine = Vt[chosen["zo"].images.numpy()]
     s0 = score(chosen)
-    gaps = [score(r) - s0 for r in cands if r is not chosen
-            and np.mean(np.linalg.norm(Vt[r["zo"].images.numpy()] - mine, axis=1) <= radius)
-            < _RIVAL_AGREE]
-    return float(min(gaps)) if gaps else None
+    rivals = [r for r in cands if r is not chosen
+              and np.mean(np.linalg.norm(Vt[r["zo"].images.numpy()] - mine, axis=1) <= radius)
+              < _RIVAL_AGREE]
+    if not rivals:
+        return None, None
+    best = min(rivals, key=score)
+    return float(score(best) - s0), best
+
+
+def _margin(chosen: dict, cands: list[dict], score: Callable[[dict], float],
+            tgt: PreparedShape) -> float | None:
+    """How much worse the best rival of the chosen candidate scored (:func:`_rival`); None
+    without a rival."""
+    return _rival(chosen, cands, score, tgt)[0]
 
 
 # ``match(trimmed_twins=True)``: every orientation-preserving ZoomOut candidate gets a trimmed
