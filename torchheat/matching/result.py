@@ -57,8 +57,9 @@ class Correspondence:
         map behind :attr:`MapQuality.margin <torchheat.matching.quality.MapQuality>`), dense
         at the size the candidates were compared at (100 modes); None without one (method
         ``"paper"``, ``zoomout=False``, partial matches). When the choice is ambiguous
-        (``quality.ambiguous``), this is the map to look at: on TOSCA 284 + SCAPE 50 the
-        direct or the rival map is right on all but 2 of the 11 ambiguous pairs (RESULTS.md).
+        (``quality.ambiguous``), this is the map to look at: on TOSCA 284 + SCAPE 50 pairs
+        the direct or the rival map was right on 10 of the 11 ambiguous ones (RESULTS.md,
+        eleventh session).
 
     Notes
     -----
