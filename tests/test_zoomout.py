@@ -262,7 +262,7 @@ def test_tear_reads_a_swap_of_two_parts_and_not_a_rigid_motion(spot_pair):
 
 def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
     from torchheat.matching.quality import AMBIGUOUS_BELOW
-    from torchheat.matching.select import _margin, _rival
+    from torchheat.matching.select import _rival
     from torchheat.matching.zoomout import ZoomOutResult
 
     S, T, perm = spot_pair
@@ -277,11 +277,9 @@ def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
 
     chosen = cand(right, -4.0)
     cands = [chosen, cand(near, -3.99), cand(shifted, -3.7), cand(shifted, -3.2)]
-    assert _margin(chosen, cands, lambda r: r["s"], T) == pytest.approx(0.3)
     gap, rival = _rival(chosen, cands, lambda r: r["s"], T)
     assert gap == pytest.approx(0.3) and rival is cands[2]  # the best of the two rivals
-    assert _rival(chosen, cands[:2], lambda r: r["s"], T) == (None, None)
-    assert _margin(chosen, cands[:2], lambda r: r["s"], T) is None  # no rival
+    assert _rival(chosen, cands[:2], lambda r: r["s"], T) == (None, None)  # no rival
     q = map_quality(S, T, perm, margin=0.1)
     assert q.ambiguous == (0.1 < AMBIGUOUS_BELOW) and not q.suspect
     assert not map_quality(S, T, perm).ambiguous  # no margin: never ambiguous

@@ -534,12 +534,15 @@ tosca_remeshed_5k_symmetry`).
         rows = np.unique(np.linspace(0, len(gs) - 1, int(eval_points)).round().astype(np.int64))
         gs, gt = gs[rows], gt[rows]
         gsym = None if gsym is None else gsym[rows]
-    pred = fmap[gs]
     geo = _geodesics(pair.target)
-    if getattr(pair, "gt_bary", None) is not None:
-        errs = _barycentric_errors(geo, pred, pair, gs)
-    else:
-        errs = geo.errors(pred, [gt] if gsym is None else [gt, gsym])
+
+    def errors_of(pred: np.ndarray) -> list[np.ndarray]:
+        """Errors of a map's images of the ground-truth rows: direct, then symmetric."""
+        if getattr(pair, "gt_bary", None) is not None:
+            return _barycentric_errors(geo, pred, pair, gs)
+        return geo.errors(pred, [gt] if gsym is None else [gt, gsym])
+
+    errs = errors_of(fmap[gs])
     direct = errs[0]
     flip_err, choice = None, None
     if gsym is not None:
@@ -592,12 +595,7 @@ tosca_remeshed_5k_symmetry`).
     if quality is not None and quality.ambiguous and corr.has_rival_map:
         # the map the choice passed over, scored like the direct map (only where the choice
         # was ambiguous: its dense map costs one more nearest-neighbour search)
-        rpred = _to_np(corr.rival_map).astype(np.int64)[gs]
-        if getattr(pair, "gt_bary", None) is not None:
-            rerr = _barycentric_errors(geo, rpred, pair, gs)
-        else:
-            rerr = geo.errors(rpred, [gt])
-        rec["rival"] = _summary(rerr[0])
+        rec["rival"] = _summary(errors_of(_to_np(corr.rival_map).astype(np.int64)[gs])[0])
     part = corr.partial_summary()
     if part:  # how a partial match was made: its area ratio, the way kept and why
         rec["partial"] = part

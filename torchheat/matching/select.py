@@ -273,13 +273,6 @@ def _rival(chosen: dict, cands: list[dict], score: Callable[[dict], float],
     return float(score(best) - s0), best
 
 
-def _margin(chosen: dict, cands: list[dict], score: Callable[[dict], float],
-            tgt: PreparedShape) -> float | None:
-    """How much worse the best rival of the chosen candidate scored (:func:`_rival`); None
-    without a rival."""
-    return _rival(chosen, cands, score, tgt)[0]
-
-
 # ``match(trimmed_twins=True)``: every orientation-preserving ZoomOut candidate gets a trimmed
 # twin (_trimmed_candidates); measured on the 284 TOSCA pairs: only those scoring within 0.3
 # of the best, half the cost, gave 97.9 % against 98.0 % (the twins that win most often have
