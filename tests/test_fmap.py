@@ -215,3 +215,22 @@ def test_landmark_map_turns_a_thin_reflection_into_the_direct_map():
     zo = zoomout(phi_s, phi_t, p, torch.from_numpy(perm[mp][p.numpy()]), rows, k_start=16,
                  k_end=60, step=8)
     assert (spectral_map(phi_s, phi_t, zo.C)[1].numpy() == perm[mp]).mean() > 0.99
+
+
+def test_memoised_hessians_give_the_same_maps_and_are_keyed_by_direction():
+    V, F = generic_sphere(3)
+    s = torchheat.prepare(torchheat.Mesh(V, F), k=40)
+    t = torchheat.prepare(torchheat.Mesh(V * np.array([1.2, 1.0, 0.85]), F), k=40)
+    memo: dict = {}
+    direct = fmap.descriptor_functional_map(s, t, k=12, memo=memo)
+    assert torch.allclose(direct, fmap.descriptor_functional_map(s, t, k=12), atol=1e-12)
+    assert list(memo) == [(12, 50, False)]
+    rev = fmap.descriptor_functional_map(s, t, k=12, reversing=True, memo=memo)
+    assert torch.allclose(rev, fmap.descriptor_functional_map(s, t, k=12, reversing=True),
+                          atol=1e-12)
+    assert set(memo) == {(12, 50, False), (12, 50, True)}
+    assert not torch.allclose(rev, direct, atol=1e-3)  # the two directions differ
+    p = torch.tensor([0, 50, 100, 150, 200, 250, 300, 350])
+    lm = fmap.landmark_functional_map(s, t, p, p, k=12, memo=memo)  # reuses (12, 50, False)
+    assert torch.allclose(lm, fmap.landmark_functional_map(s, t, p, p, k=12), atol=1e-12)
+    assert len(memo) == 2

@@ -283,3 +283,37 @@ def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
     q = map_quality(S, T, perm, margin=0.1)
     assert q.ambiguous == (0.1 < AMBIGUOUS_BELOW) and not q.suspect
     assert not map_quality(S, T, perm).ambiguous  # no margin: never ambiguous
+
+
+def test_row_basis_solves_every_prefix_as_lstsq_and_maps_as_brute_force():
+    # one QR for all the sizes of a ZoomOut: each prefix's least squares and point map must be
+    # those of an independent solve (lstsq of that prefix, scipy) and of plain spectral_map
+    import scipy.linalg
+
+    from torchheat.matching.zoomout import _RowBasis
+
+    rng = np.random.default_rng(7)
+    phi = torch.from_numpy(np.linalg.qr(rng.standard_normal((400, 40)))[0])
+    phi_t = torch.from_numpy(np.linalg.qr(rng.standard_normal((300, 40)))[0])
+    rows = torch.from_numpy(rng.choice(400, 120, replace=False))
+    rb = _RowBasis(phi, rows, 40)
+    assert rb.full_rank
+    for k in (5, 17, 40):
+        B = torch.from_numpy(rng.standard_normal((120, k)))
+        ref = scipy.linalg.lstsq(phi[rows, :k].numpy(), B.numpy())[0]
+        C = rb.functional_map(B)
+        assert np.allclose(C.numpy(), ref, atol=1e-10)
+        d2, j = rb.spectral_map(phi_t, C)
+        d2_ref, j_ref = spectral_map(phi, phi_t, C, rows)
+        assert torch.equal(j, j_ref) and torch.allclose(d2, d2_ref, atol=1e-10)
+    # a basis of rank < k on the rows (a repeated column) falls back to lstsq: the
+    # minimum-norm solution, still a least-squares minimiser
+    flat = phi.clone()
+    flat[:, 3] = flat[:, 2]
+    rb = _RowBasis(flat, rows, 10)
+    assert not rb.full_rank
+    B = torch.from_numpy(rng.standard_normal((120, 10)))
+    C = rb.functional_map(B)
+    X = flat[rows, :10].numpy()
+    ref = scipy.linalg.lstsq(X, B.numpy())[0]
+    assert np.allclose(X @ C.numpy(), X @ ref, atol=1e-8)

@@ -57,7 +57,7 @@ class ZoomOutResult:
     residual: float
 
 
-def lstsq(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+def lstsq(A: torch.Tensor, B: torch.Tensor, *, full_rank: bool = True) -> torch.Tensor:
     """``argmin_X |A X - B|_F``, the same bits on every call.
 
     ``torch.linalg.lstsq``'s default CPU driver (LAPACK ``gelsy`` through MKL) is not
@@ -66,12 +66,17 @@ def lstsq(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     residual in the fifth digit and, on a few pairs, the chosen map between runs. Here:
     QR without pivoting (``gels``: reproducible and ~15 % faster), for the full-rank
     systems of farthest-point samples; a rank-deficient ``A`` falls back to the SVD
-    (``gelsd``, also reproducible, minimum-norm solution).
+    (``gelsd``, also reproducible, minimum-norm solution). ``gels`` only notices an exactly
+    singular ``A``: a caller that knows ``A`` is numerically rank-deficient passes
+    ``full_rank=False`` and gets the SVD solution directly (``gels`` would return an
+    inaccurate one, not a least-squares minimiser).
 
     Parameters
     ----------
     A : torch.Tensor, shape (s, k)
     B : torch.Tensor, shape (s, d)
+    full_rank : bool
+        False: solve by the SVD (minimum norm) without trying ``gels``.
 
     Returns
     -------
@@ -83,6 +88,10 @@ def lstsq(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     >>> lstsq(A, torch.tensor([[1.0], [4.0], [5.0]], dtype=torch.float64)).flatten().tolist()
     [1.0, 2.0]
     """
+    if not full_rank:
+        if A.device.type != "cpu":  # CUDA has gels only
+            return torch.linalg.pinv(A) @ B
+        return torch.linalg.lstsq(A, B, driver="gelsd").solution
     if A.device.type != "cpu":
         return torch.linalg.lstsq(A, B).solution  # CUDA: gels, the only driver there
     try:
@@ -185,7 +194,7 @@ class _RowBasis:
         """``argmin_C |X[:, :k] C - B|``, ``k = B.shape[1]``."""
         k = B.shape[1]
         if not self.full_rank:
-            return lstsq(self.X[:, :k], B)
+            return lstsq(self.X[:, :k], B, full_rank=False)
         return torch.linalg.solve_triangular(self.R[:k, :k], self.Q[:, :k].T @ B, upper=True)
 
     def spectral_map(self, phi_t: torch.Tensor, C: torch.Tensor,
