@@ -234,3 +234,17 @@ def test_memoised_hessians_give_the_same_maps_and_are_keyed_by_direction():
     lm = fmap.landmark_functional_map(s, t, p, p, k=12, memo=memo)  # reuses (12, 50, False)
     assert torch.allclose(lm, fmap.landmark_functional_map(s, t, p, p, k=12), atol=1e-12)
     assert len(memo) == 2
+
+
+def test_landmark_map_refuses_bad_point_pairs():
+    V, F = generic_sphere(2)
+    s = torchheat.prepare(torchheat.Mesh(V, F), k=30)
+    p = torch.tensor([0, 5, 9])
+    with pytest.raises(ValueError, match="3 source and 2 target"):
+        fmap.landmark_functional_map(s, s, p, p[:2], k=10)
+    with pytest.raises(ValueError, match="0 source"):
+        fmap.landmark_functional_map(s, s, p[:0], p[:0], k=10)
+    with pytest.raises(ValueError, match=f"target point index out of range: 0..{s.n}"):
+        fmap.landmark_functional_map(s, s, p, torch.tensor([0, 1, s.n]), k=10)
+    with pytest.raises(ValueError, match="source point index out of range: -1"):
+        fmap.landmark_functional_map(s, s, torch.tensor([-1, 1, 2]), p, k=10)

@@ -274,6 +274,11 @@ def landmark_functional_map(src: PreparedShape, tgt: PreparedShape, src_points: 
     torch.Tensor, float64, shape (k, k)
         ``C`` with ``Phi_M C ~ Phi_N[T]`` (see :mod:`.zoomout`).
 
+    Raises
+    ------
+    ValueError
+        No point pairs, lists of different lengths, or a vertex index outside its shape.
+
     Notes
     -----
     Cost: that of :func:`descriptor_functional_map` (the shapes' operators are cached) plus
@@ -290,14 +295,23 @@ def landmark_functional_map(src: PreparedShape, tgt: PreparedShape, src_points: 
     >>> bool(torch.allclose(C, torch.eye(10, dtype=torch.float64), atol=0.05))  # the identity
     True
     """
+    sp = torch.as_tensor(src_points, dtype=torch.int64).reshape(-1)
+    tp = torch.as_tensor(tgt_points, dtype=torch.int64).reshape(-1)
+    if sp.numel() == 0 or sp.numel() != tp.numel():
+        raise ValueError(f"landmark_functional_map needs point pairs: {sp.numel()} source and "
+                         f"{tp.numel()} target points given")
+    for name, pts, n in (("source", sp, src.n), ("target", tp, tgt.n)):
+        if int(pts.min()) < 0 or int(pts.max()) >= n:
+            raise ValueError(f"{name} point index out of range: {int(pts.min())}.."
+                             f"{int(pts.max())} for a shape of {n} vertices")
     lam_s_all = src.hk.eigenvalues.double()
     lam_t_all = tgt.hk.eigenvalues.double()
     k = int(min(k, lam_s_all.numel(), lam_t_all.numel()))
     A_w, Dm, Om = shape_operators(src, k, n_descr)
     B_w, Dn, On = shape_operators(tgt, k, n_descr)
     t = torch.as_tensor(times, dtype=torch.float64)
-    phi_s = src.hk.eigenvectors.double()[torch.as_tensor(src_points), :k]  # (L, k)
-    phi_t = tgt.hk.eigenvectors.double()[torch.as_tensor(tgt_points), :k]
+    phi_s = src.hk.eigenvectors.double()[sp, :k]  # (L, k)
+    phi_t = tgt.hk.eigenvectors.double()[tp, :k]
     # coefficients of k_t(p, .) = sum_i exp(-lam_i t) phi_i(p) phi_i(.): (k, L |times|)
     A_h = (phi_s[:, None, :] * torch.exp(-lam_s_all[None, :k] * t[:, None])[None]).reshape(-1, k)
     B_h = (phi_t[:, None, :] * torch.exp(-lam_t_all[None, :k] * t[:, None])[None]).reshape(-1, k)
