@@ -127,24 +127,24 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                          k_end=k_sel, step=_ZO_STEP, targets=targets)
             r["zo"] = zo
             r["zo_orientation"] = orient(zo.images)
-        if opt.mirror_hypothesis and opt.orientation and bool((pos[samples] >= 0).all()):
-            cands += _mirror_partners(src, tgt, rows, pos[samples], cands, opt, k_sel,
+        # positions of the refinement samples among the rows (None if a sample is not a row)
+        at = pos[samples] if bool((pos[samples] >= 0).all()) else None
+        if opt.mirror_hypothesis and opt.orientation and at is not None:
+            cands += _mirror_partners(src, tgt, rows, at, cands, opt, k_sel,
                                       targets, orient, symmetries_at)
-        if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
+        if opt.descriptor_seed and at is not None:
             t_d = time.perf_counter()
-            cands += _descriptor_candidate(src, tgt, rows, pos[samples], cands, k_sel,
+            cands += _descriptor_candidate(src, tgt, rows, at, cands, k_sel,
                                            targets, orient, memo)
             timings["descriptor_seed"] = time.perf_counter() - t_d
         if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
             parents = [r for r in cands if r["zo_orientation"] > 0]
-            at = pos[samples] if bool((pos[samples] >= 0).all()) else None
             cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
                                          targets, orient)
             timings["zoomout_trim"] = time.perf_counter() - t_t
         if opt.orientation and opt.reoriented:
             t_r = time.perf_counter()
-            at = pos[samples] if bool((pos[samples] >= 0).all()) else None
             cands += _reoriented_candidates(src, tgt, rows, at, cands, k_sel, targets, orient,
                                             tear, memo)
             timings["zoomout_reorient"] = time.perf_counter() - t_r
