@@ -317,3 +317,8 @@ def test_an_ambiguous_choice_records_its_rival_map(monkeypatch):
     assert rec["direct"]["under_0.25"] > 0.9 > rec["rival"]["under_0.25"]  # a different map
     row = batch._row("overall", "all", [rec, {**rec, "rival": {"under_0.25": 1.0}}])
     assert row["ambiguous"] == 2 and row["rival_right"] == 1
+    # which search gave the map is recorded and counted (match(staged=True))
+    assert rec["search"] in ("first stage", "full (first stage not clear)")
+    two = [{**rec, "search": "first stage"}, {**rec, "search": "full (first stage not clear)"}]
+    assert batch._row("overall", "all", two)["first_stage"] == 1
+    assert batch._row("overall", "all", [{**rec, "search": None}])["first_stage"] is None

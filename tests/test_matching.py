@@ -720,6 +720,49 @@ def test_reoriented_option_reaches_the_choice(mirror_pair, monkeypatch):
     assert not on.quality.ambiguous
 
 
+def test_clear_needs_a_margin_and_a_direct_orientation():
+    from torchheat.matching.select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
+
+    ok = {"zo_margin": _CLEAR_MARGIN + 0.01, "zo_orientation": _ZO_ORIENT_CLIP + 0.1}
+    assert _clear(ok)
+    assert not _clear({**ok, "zo_margin": None})  # no rival: nothing to be clear against
+    assert not _clear({**ok, "zo_margin": _CLEAR_MARGIN - 0.01})
+    assert not _clear({**ok, "zo_orientation": _ZO_ORIENT_CLIP - 0.1})
+
+
+def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
+    from torchheat.matching import pipeline, select
+
+    S, T, perm, _ = mirror_pair
+    seeds: list[int] = []
+    real = pipeline._refine
+
+    def spy(*a, **k):
+        if a[0] is not a[1]:  # not the target's self-match (the mirror hypothesis)
+            seeds.append(a[7].source_landmarks)
+        return real(*a, **k)
+
+    monkeypatch.setattr(pipeline, "_refine", spy)
+    staged = match(S, T)
+    assert staged.info["search"] == "first stage" and seeds == [3]
+    assert staged.report()["search"] == "first stage"
+    assert float((staged.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    seeds.clear()
+    full = match(S, T, staged=False)
+    assert full.info["search"] == "full" and seeds == [8]
+    # a first stage that is not clear: the full search runs and gives the unstaged map
+    monkeypatch.setattr(select, "_CLEAR_MARGIN", math.inf)
+    seeds.clear()
+    again = match(S, T)
+    assert again.info["search"] == "full (first stage not clear)" and seeds == [3, 8]
+    assert torch.equal(again.map, full.map)
+    assert "first_stage" in again.info["timings"]
+    # a given landmark or the paper's method: no stages
+    seeds.clear()
+    assert match(S, T, landmark=int(S.features[0])).info["search"] == "full"
+    assert seeds == [8] and match(S, T, method="paper").info["search"] is None
+
+
 def test_rival_map_is_a_different_whole_map(mirror_pair, tmp_path, capsys):
     from test_cli import write_off
 

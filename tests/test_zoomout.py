@@ -162,6 +162,7 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
     assert "landmark_search" in r["timings"] and "match total" in r["timings"]
     assert "descriptor_seed" in r["timings"] and "zoomout_reorient" in r["timings"]
     assert "margin" in r and r["ambiguous"] is False
+    assert r["search"] in ("first stage", "full (first stage not clear)")
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m2.txt"), "--no-zoomout",
                  "--report", str(rep), "--threads", "1"]) == 0
     assert json.loads(rep.read_text())["zoomout"] is False
@@ -177,6 +178,11 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
     assert (m3 == perm.numpy()).mean() >= 0.99
     m2 = np.loadtxt(tmp_path / "m2.txt", dtype=np.int64)
     assert (m2 == perm.numpy()).mean() >= 0.99
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m5.txt"), "--no-staged",
+                 "--report", str(rep), "--threads", "1"]) == 0
+    assert json.loads(rep.read_text())["search"] == "full"
+    m5 = np.loadtxt(tmp_path / "m5.txt", dtype=np.int64)
+    assert (m5 == perm.numpy()).mean() >= 0.99
 
 
 def test_symmetry_quality_expects_a_reversing_map():

@@ -591,6 +591,7 @@ tosca_remeshed_5k_symmetry`).
         "defect": None if quality is None else quality.defect,
         "margin": None if quality is None else quality.margin,
         "ambiguous": None if quality is None else bool(quality.ambiguous),
+        "search": corr.info.get("search"),
     }
     if quality is not None and quality.ambiguous and corr.has_rival_map:
         # the map the choice passed over, scored like the direct map (only where the choice
@@ -1284,6 +1285,9 @@ def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, 
         # ambiguous pairs whose rival map (Correspondence.rival_map) is right (>= 90 % < 0.25)
         "rival_right": sum((r.get("rival") or {}).get("under_0.25", 0.0) >= 0.9 for r in recs)
         if any(r.get("ambiguous") is not None for r in recs) else None,
+        # maps of a staged search kept from its first stage (match(staged=True))
+        "first_stage": sum(r.get("search") == "first stage" for r in recs)
+        if any(r.get("search") for r in recs) else None,
     }
 
 
@@ -1318,6 +1322,9 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
         head += ["quality", "suspect", "ambiguous", "rival right"]
         keys += ["quality", "suspect", "ambiguous", "rival_right"]
         digits["quality"] = 2
+    if any(r.get("first_stage") is not None for r in rows):
+        head.append("1st stage")
+        keys.append("first_stage")
     if any(r["distortion"] is not None for r in rows):
         head.append("distortion")
         keys.append("distortion")
@@ -1329,7 +1336,8 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
              "map better. Times: prepare + match, evaluation. Quality: the map's own evidence "
              "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25, "
              "ambiguous: maps whose best rival (a different whole map) scored within 0.15, "
-             "rival right: ambiguous maps whose rival map is right (>= 90 % under 0.25).",
+             "rival right: ambiguous maps whose rival map is right (>= 90 % under 0.25); "
+             "1st stage: maps kept from the first stage of the staged search.",
              ""]
     for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
         sel = [r for r in rows if r["level"] == level]

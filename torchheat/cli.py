@@ -405,7 +405,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
                  descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
-                 reoriented=args.reoriented, **part_kw)
+                 reoriented=args.reoriented, staged=args.staged, **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -777,6 +777,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave out the reoriented twins of the best-aligned ZoomOut candidates "
                         "(each re-fitted as an orientation-preserving functional map that keeps "
                         "where its points go) and the tear term of the ZoomOut score")
+    m.add_argument("--no-staged", dest="staged", action="store_false",
+                   help="search from all 8 seeding source features at once; by default the "
+                        "hypotheses of the first 3 are tried first and their choice is kept "
+                        "when it is clear (margin and orientation), which saves much of the "
+                        "match time on most pairs")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

@@ -50,9 +50,11 @@ from .result import Correspondence, _numbering
 from .select import (
     _DESCR_DIRECT,
     _ZO_SAME,
+    _clear,
     _dense_partial_guarded,
     _dense_spectral,
     _descriptor_symmetry,
+    _memoised,
     _spectral_choice,
     _zoomout_final,
 )
@@ -96,6 +98,7 @@ def match(
     descriptor_seed: bool = True,
     trimmed_twins: bool = True,
     reoriented: bool = True,
+    staged: bool = True,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
     partial_scale: str = "auto",
@@ -240,6 +243,16 @@ def match(
         images are torn apart (``select._Tear``: a map with two parts swapped). TOSCA 284
         pairs: 97.8 -> 98.8 % under 0.25, mean 0.036 -> 0.028 (RESULTS.md, eleventh
         session; ``--no-reoriented``).
+    staged : bool
+        (``zoomout=True``, automatic landmark, two whole shapes) Search in two stages: first
+        the hypotheses of the first 3 seeding source features alone (the strongest, then
+        the farthest from the ones used; every kind of ZoomOut candidate made from them).
+        Their choice is kept when it is clear: its margin to the best different whole map
+        is at least 0.75 and it reads a direct orientation (>= 0.6; ``select._clear``).
+        Otherwise the full search runs (``source_landmarks`` features), reusing what the
+        first stage refined, and gives the map ``staged=False`` gives. ``info["search"]``
+        and the report say which search gave the map. False: the full search only
+        (``--no-staged``). Measured in RESULTS.md (twelfth session).
     descriptor_seed : bool
         (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
         30 x 30 functional map of the shapes' wave kernel signatures with the
@@ -391,6 +404,7 @@ def match(
         samples = None
         zo_diag: list = []
         descr_fmap = None
+        search = None  # method="refine": which search gave the map
         if method == "paper":
             hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, 2)
                    for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)][:2]
@@ -419,8 +433,22 @@ def match(
                 zoomout_hypotheses=zoomout_hypotheses, descriptor_seed=descriptor_seed,
                 trimmed_twins=trimmed_twins, reoriented=reoriented,
                 partial_ratio=None if part is None else part.ratio)
-            out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
-                          timings)
+            out, search = None, "full"
+            memo: dict = {}  # refined hypotheses and ZoomOuts, shared by the two stages
+            if (staged and landmark is None and opts.source_landmarks > _FIRST_STAGE_SEEDS
+                    and part is None and tgt is not src and zoomout and orientation):
+                # the first seeding features' hypotheses; kept when their choice is clear
+                t_q = time.perf_counter()
+                first = dataclasses.replace(opts, source_landmarks=_FIRST_STAGE_SEEDS)
+                out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings,
+                              memo)
+                timings["first_stage"] = time.perf_counter() - t_q
+                search = "first stage"
+                if not _clear(out["direct"]):
+                    out, search = None, "full (first stage not clear)"
+            if out is None:
+                out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
+                              timings, memo)
             direct, sym, orient = out["direct"], out["sym"], out["orient"]
             hypotheses, hyp_images = out["hypotheses"], out["hyp_images"]
             samples = out["samples"]
@@ -453,7 +481,7 @@ def match(
         rival_map=direct.get("rival_map") if method == "refine" else None,
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
-              "hypothesis_images": hyp_images, "refine_samples": samples,
+              "hypothesis_images": hyp_images, "refine_samples": samples, "search": search,
               "zoomout_candidates": zo_diag,
               "sym_orientation": None if sym is None else sym.get("orientation"),
               "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks")),
@@ -474,13 +502,15 @@ def _pair_shapes(pair: Any) -> tuple[Any, Any]:
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             p2: int | None, auto_landmark: bool, score_rows: torch.Tensor | None,
-            opt: _Options, bg: _Background, timings: dict) -> dict:
+            opt: _Options, bg: _Background, timings: dict, memo: dict | None = None) -> dict:
     """The default pipeline after the landmark search (see :func:`match`, ``method="refine"``).
 
     Seeds one-point hypotheses (``p`` and, for an automatic landmark, further source
     features), refines them by correspondence augmentation, adds the mirror partner of the
     best from the target's self-symmetry and chooses the direct and symmetric maps. Returns
-    ``{"direct", "sym", "orient", "hypotheses", "hyp_images", "samples"}``.
+    ``{"direct", "sym", "orient", "hypotheses", "hyp_images", "samples"}``. ``memo``: the
+    match's memo of refined hypotheses and ZoomOuts (deterministic given their seeds; the two
+    stages of ``match(staged=True)`` share it).
     """
     Vs, _ = src.mesh.numpy()
     Vt, _ = tgt.mesh.numpy()
@@ -508,11 +538,10 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         used = [p]
         # a quarter of the score samples (a farthest-point prefix: still spread)
         extra_rows = _fps(src, max(100, (opt.score_samples or src.n) // 4))
-        for _ in range(min(opt.source_landmarks, feats.size) - 1):
-            pe = _farthest_feature(Vs, feats, used)
-            used.append(pe)
-            # candidates: the target features of most similar HKS (the true image
-            # has nearly the same), then the full score E(pe, q) on those
+
+        def seeds_of(pe: int) -> list:
+            # candidates: the target features of most similar HKS (the true image has
+            # nearly the same), then the full score E(pe, q) on those
             pool_e = tgt.features
             if pool_e.numel() > opt.extra_candidates:
                 dh = (tgt.hks[pool_e] - src.hks[pe].to(tgt.hks.dtype)).abs().amax(1)
@@ -521,16 +550,32 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                                  engine=opt.engine, samples=extra_rows)
             ce = pool_e[torch.argsort(sc, stable=True)]
             pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, diam_s)
-            hyp += [lm for i, q in enumerate(_distinct(ce, Vt, 0.05 * diam_t,
-                                                       opt.n_candidates))
+            return [lm for i, q in enumerate(_distinct(ce, Vt, 0.05 * diam_t, opt.n_candidates))
                     for lm in _expand(src, tgt, pe, q, pe2 if i < opt.expand_top else None,
                                       opt.use_hks, 0.05 * diam_t)]
+
+        for _ in range(min(opt.source_landmarks, feats.size) - 1):
+            pe = _farthest_feature(Vs, feats, used)
+            used.append(pe)
+            hyp += _memoised(memo, ("seeds", pe), lambda pe=pe: seeds_of(pe))
     refiner = _Refiner(src, tgt, samples, opt.refine_log_floor,
                        centre=opt.partial_ratio is None)
     # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
     # energy go on: a hypothesis that starts far behind does not converge (measured:
     # the energies of converged and failed hypotheses differ 5-50x)
     def round1(lms0: list) -> tuple[float, torch.Tensor]:
+        return _memoised(memo, ("round 1", tuple(lms0)), lambda: _round1(lms0))
+
+    def refined(g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, float, float]:
+        """Sample images, energy and orientation of a hypothesis after ``iterations``
+        rounds of correspondence augmentation from ``g0`` (memoised)."""
+        def compute() -> tuple[torch.Tensor, float, float]:
+            f_rows, g, energy = refiner.augment(g0, rows, iterations)
+            return g, energy, _orientation(src, tgt, tri, lambda i: f_rows[pos[i]].numpy())
+
+        return _memoised(memo, ("refined", g0.numpy().tobytes(), iterations), compute)
+
+    def _round1(lms0: list) -> tuple[float, torch.Tensor]:
         g0, _ = _sample_map(src, tgt, lms0, samples, opt.use_hks, opt.engine)
         if opt.partial_ratio is not None:  # right near the landmark only: grow from there
             g0 = grow_hypothesis(src, tgt, [int(lms0[0][0])], samples, g0,
@@ -580,8 +625,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         hypotheses.append((lms0, e1, float("nan")))
         hyp_images.append(g0)
     for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
-        f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
-        o = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
+        g, energy, o = refined(g0, max(opt.refine_iterations - 1, 1))
         results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
         hypotheses.append((lms0 or ["descriptor map"], energy, o))
         hyp_images.append(g)
@@ -599,8 +643,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         sig = _symmetry_at(tgt, best["g"], opt.use_hks, opt.engine, opt.n_candidates,
                            opt.refine_log_floor)
         if sig is not None:
-            f_rows, g2, e2 = refiner.augment(sig, rows, opt.refine_iterations)
-            o2 = _orientation(src, tgt, tri, lambda i, f=f_rows: f[pos[i]].numpy())
+            g2, e2, o2 = refined(sig, opt.refine_iterations)
             mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
             hypotheses.append((["mirror of best"], e2, o2))
             hyp_images.append(g2)
@@ -633,7 +676,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         direct, sym, zo_diag = _spectral_choice(
             src, tgt, samples, good, opt, timings,
             lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
-                                            opt.refine_log_floor))
+                                            opt.refine_log_floor), memo)
     else:
         descr = [r for r in good if not r["lms0"]] if opt.partial_ratio is not None else []
         if descr and len(good) > 1:
@@ -726,6 +769,8 @@ _PARTIAL_DESCR_LANDMARKS = 4
 
 
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
+#: ``match(staged=True)``: source features seeding the first stage (the full search: 8)
+_FIRST_STAGE_SEEDS = 3
 #: ``fixed_weight`` of self-maps (:func:`symmetry` and the target's self-symmetry behind the
 #: mirror hypothesis): the symmetric self-map pays this weight times the share of samples it
 #: leaves in place. A reflection fixes a band around its plane (0.06-0.35 of the samples on

@@ -126,8 +126,10 @@ class Correspondence:
         return None if q is None else q.suspect
 
     def report(self) -> dict:
-        """A JSON-able summary: vertex counts, method, landmarks, orientation, quality,
-        suspect, timings (what ``torchheat match --report`` writes, with the file names)."""
+        """A JSON-able summary: vertex counts, method, the search that gave the map
+        (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), landmarks, orientation,
+        quality, suspect, timings (what ``torchheat match --report`` writes, with the file
+        names)."""
         q = self.quality
         o = self.orientation
         return {
@@ -136,6 +138,7 @@ class Correspondence:
             else int(self.info["n_target"]),
             "method": self.info.get("method"),
             "zoomout": self.info.get("zoomout"),
+            **({"search": self.info["search"]} if self.info.get("search") else {}),
             "landmarks": [[int(a), int(b)] for a, b in self.landmarks],
             "orientation": None if o != o else float(o),
             **({} if q is None else q.as_dict()),

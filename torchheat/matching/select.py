@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -79,6 +80,29 @@ def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tens
                        k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
 
 
+def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:
+    """``memo[key]``, computed by ``compute()`` the first time (always, without a memo)."""
+    if memo is None:
+        return compute()
+    if key not in memo:
+        memo[key] = compute()
+    return memo[key]
+
+
+def _memo_zoomout(memo: dict | None, phi_s: torch.Tensor, phi_t: torch.Tensor,
+                  seed_rows: torch.Tensor, seed_images: torch.Tensor, rows: torch.Tensor, *,
+                  k_start: int, k_end: int, targets: torch.Tensor | None) -> ZoomOutResult:
+    """:func:`~torchheat.matching.zoomout.zoomout` by ``_ZO_STEP`` modes, memoised in ``memo``
+    by its seed and sizes. The memo serves one pair's match, whose bases, ZoomOut rows and
+    targets do not change (the two stages of ``match(staged=True)`` share it: a candidate the
+    first stage refined is not refined again)."""
+    key = ("zoomout", seed_rows.numpy().tobytes(), seed_images.numpy().tobytes(), k_start,
+           k_end, rows.numel(), None if targets is None else targets.numel())
+    return _memoised(memo, key, lambda: zoomout(phi_s, phi_t, seed_rows, seed_images, rows,
+                                                k_start=k_start, k_end=k_end, step=_ZO_STEP,
+                                                targets=targets))
+
+
 #: ``symmetries_at(shape, vertices)``: the images of ``vertices`` under each of the shape's
 #: intrinsic (orientation-reversing) self-maps (the pipeline's self-match, cached per shape)
 SymmetriesAt = Callable[[PreparedShape, torch.Tensor], list[torch.Tensor]]
@@ -86,7 +110,8 @@ SymmetriesAt = Callable[[PreparedShape, torch.Tensor], list[torch.Tensor]]
 
 def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
                      pool: list[dict], opt: _Options, timings: dict,
-                     symmetries_at: SymmetriesAt) -> tuple[dict, dict | None, list]:
+                     symmetries_at: SymmetriesAt, memo: dict | None = None
+                     ) -> tuple[dict, dict | None, list]:
     """Choose the direct and symmetric maps among refined hypotheses by ZoomOut.
 
     Each distinct hypothesis is upsampled from its 48 sample images to ``_ZO_SELECT_K``
@@ -115,7 +140,8 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
     w = opt.orientation_weight if opt.orientation else 0.0
     tear = _Tear(src, tgt, rows, _TEAR_WEIGHT if opt.reoriented else 0.0)
-    memo: dict = {}  # the pair's functional-map Hessians (descriptor and reoriented maps)
+    # the pair's memo: functional-map Hessians (descriptor and reoriented maps), ZoomOuts
+    memo = {} if memo is None else memo
 
     def score(r: dict, sign: float) -> float:
         o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
@@ -123,15 +149,15 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
     with threads(opt.num_threads):
         for r in cands:
-            zo = zoomout(phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
-                         k_end=k_sel, step=_ZO_STEP, targets=targets)
+            zo = _memo_zoomout(memo, phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
+                               k_end=k_sel, targets=targets)
             r["zo"] = zo
             r["zo_orientation"] = orient(zo.images)
         # positions of the refinement samples among the rows (None if a sample is not a row)
         at = pos[samples] if bool((pos[samples] >= 0).all()) else None
         if opt.mirror_hypothesis and opt.orientation and at is not None:
             cands += _mirror_partners(src, tgt, rows, at, cands, opt, k_sel,
-                                      targets, orient, symmetries_at)
+                                      targets, orient, symmetries_at, memo)
         if opt.descriptor_seed and at is not None:
             t_d = time.perf_counter()
             cands += _descriptor_candidate(src, tgt, rows, at, cands, k_sel,
@@ -141,7 +167,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             t_t = time.perf_counter()
             parents = [r for r in cands if r["zo_orientation"] > 0]
             cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
-                                         targets, orient)
+                                         targets, orient, memo)
             timings["zoomout_trim"] = time.perf_counter() - t_t
         if opt.orientation and opt.reoriented:
             t_r = time.perf_counter()
@@ -167,6 +193,21 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
     timings["zoomout"] = time.perf_counter() - t0
     return direct, sym, diag
+
+
+#: ``match(staged=True)``: the first stage's choice (the strongest source feature's hypotheses
+#: and every kind of ZoomOut candidate made from them) is kept
+#: when the best different whole map scored at least this much worse (the margin) and the
+#: choice reads a direct orientation (>= _ZO_ORIENT_CLIP); otherwise the full search runs.
+_CLEAR_MARGIN = 0.75
+
+
+def _clear(direct: dict) -> bool:
+    """Whether a first-stage choice is clear enough to skip the full search (see
+    ``_CLEAR_MARGIN``); a choice without a rival is not."""
+    margin = direct.get("zo_margin")
+    return (margin is not None and margin >= _CLEAR_MARGIN
+            and direct.get("zo_orientation", -1.0) >= _ZO_ORIENT_CLIP)
 
 
 _TEAR_WEIGHT = 10.0  # weight of the tear (share of torn neighbour pairs) in the ZoomOut score
@@ -236,11 +277,14 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     out: list[dict] = []
     for r in top:
         im = r["zo"].images
-        C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS], im[:_REORIENT_POINTS],
-                                    k=k0, memo=memo)
-        j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
-        zo = zoomout(phi_s, phi_t, rows, targets[j], rows, k_start=k0, k_end=k_sel,
-                     step=_ZO_STEP, targets=targets)
+        def twin(im: torch.Tensor = im) -> ZoomOutResult:
+            C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS],
+                                        im[:_REORIENT_POINTS], k=k0, memo=memo)
+            j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
+            return _memo_zoomout(memo, phi_s, phi_t, rows, targets[j], rows, k_start=k0,
+                                 k_end=k_sel, targets=targets)
+
+        zo = _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0), twin)
         new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "reoriented": True}
         new.pop("zo_tear", None)
         if at_samples is not None:
@@ -284,8 +328,8 @@ _TRIM_MIN = 40  # fewest rows a trimmed candidate is seeded from
 def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                         pos: torch.Tensor, at_samples: torch.Tensor | None, tri: tuple,
                         parents: list[dict], k_sel: int,
-                        targets: torch.Tensor, orient: Callable[[torch.Tensor], float]
-                        ) -> list[dict]:
+                        targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
+                        memo: dict | None = None) -> list[dict]:
     """Each of the ZoomOut candidates ``parents`` again, seeded only from its rows whose
     neighbourhood keeps the orientation.
 
@@ -315,8 +359,8 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         if keep_np.sum() < _TRIM_MIN or keep_np.mean() >= 0.99:
             continue
         keep = torch.from_numpy(keep_np)
-        zo = zoomout(phi_s, phi_t, rows[keep], images[keep], rows, k_start=_ZO_START_K,
-                     k_end=k_sel, step=_ZO_STEP, targets=targets)
+        zo = _memo_zoomout(memo, phi_s, phi_t, rows[keep], images[keep], rows,
+                           k_start=_ZO_START_K, k_end=k_sel, targets=targets)
         new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "trimmed": True}
         if at_samples is not None:  # its own images of the refinement samples
             new["g"] = zo.images[at_samples]
@@ -334,7 +378,7 @@ _MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measur
 def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                      at_samples: torch.Tensor, cands: list[dict], opt: _Options, k_sel: int,
                      targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                     symmetries_at: SymmetriesAt) -> list[dict]:
+                     symmetries_at: SymmetriesAt, memo: dict | None = None) -> list[dict]:
     """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
     ``T`` (``sigma_N``: the target's intrinsic symmetry), refined by ZoomOut from 16 modes.
 
@@ -357,8 +401,8 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
             j = spectral_map(phi_s, phi_t[targets], r["zo"].C, ss)[1]
             seeds.append(targets[j])
         for seed in seeds:
-            zo = zoomout(phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K, k_end=k_sel,
-                         step=_ZO_STEP, targets=targets)
+            zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
+                               k_end=k_sel, targets=targets)
             im = zo.images.numpy()
             if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
                            <= radius) >= _ZO_SAME for o in cands + out):
@@ -404,14 +448,15 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     existing candidate's (as in :func:`_distinct_hypotheses`)."""
     phi_s, phi_t = _bases(src, tgt)
     k = min(_DESCR_K, k_sel)
-    C = descriptor_functional_map(src, tgt, k=k, memo=memo)
+    C = _memoised(memo, ("descriptor map", k),
+                  lambda: descriptor_functional_map(src, tgt, k=k, memo=memo))
     # seeded like every other candidate: its images of the refinement samples, from
     # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
     # than a comparable landmark hypothesis: measured, it then beat right maps)
     seed_rows = rows[at_samples]
     _, j = spectral_map(phi_s, phi_t[targets], C, seed_rows)
-    zo = zoomout(phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K, k_end=k_sel,
-                 step=_ZO_STEP, targets=targets)
+    zo = _memo_zoomout(memo, phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K,
+                       k_end=k_sel, targets=targets)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     im = zo.images.numpy()
