@@ -238,6 +238,7 @@ def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed, monkeypatc
     assert all(a < holed.n_vertices for a, _ in corr.landmarks)
     assert corr.info["partial"]["scale"] == "filled"
     assert twins == []
+    assert corr.info["search"] == "full"  # the staged search is for whole shapes only
     assert corr.info["partial"]["filled_vertices"] == filled.n_vertices - holed.n_vertices
     W, _ = whole.numpy()
     err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()

@@ -252,7 +252,9 @@ def match(
         Otherwise the full search runs (``source_landmarks`` features), reusing what the
         first stage refined, and gives the map ``staged=False`` gives. ``info["search"]``
         and the report say which search gave the map. False: the full search only
-        (``--no-staged``). Measured in RESULTS.md (twelfth session).
+        (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.97 s per pair in a batch, 98.44 ->
+        98.34 % under 0.25 (5 pairs changed); SCAPE 50: every map the same (RESULTS.md,
+        twelfth session). Not in the filled way of a piece (measured to lose there).
     descriptor_seed : bool
         (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
         30 x 30 functional map of the shapes' wave kernel signatures with the
