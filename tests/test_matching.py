@@ -743,8 +743,14 @@ def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
         return real(*a, **k)
 
     monkeypatch.setattr(pipeline, "_refine", spy)
+    opts: list = []
+    real_spy = pipeline._refine
+    monkeypatch.setattr(pipeline, "_refine", lambda *a, **k: opts.append(a[7]) or real_spy(*a, **k))
     staged = match(S, T)
     assert staged.info["search"] == "first stage" and seeds == [3]
+    first = [o for o in opts if o.source_landmarks == 3][0]
+    assert (first.refine_keep, first.zoomout_hypotheses) == (8, 6)  # a smaller first stage
+    monkeypatch.setattr(pipeline, "_refine", real_spy)
     assert staged.report()["search"] == "first stage"
     assert float((staged.map == torch.as_tensor(perm)).double().mean()) > 0.99
     seeds.clear()

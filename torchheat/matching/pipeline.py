@@ -246,15 +246,17 @@ def match(
     staged : bool
         (``zoomout=True``, automatic landmark, two whole shapes) Search in two stages: first
         the hypotheses of the first 3 seeding source features alone (the strongest, then
-        the farthest from the ones used; every kind of ZoomOut candidate made from them).
+        the farthest from the ones used), the 8 best after round 1 refined, the 6 best
+        distinct upsampled, with every kind of ZoomOut candidate made from them.
         Their choice is kept when it is clear: its margin to the best different whole map
         is at least 0.75 and it reads a direct orientation (>= 0.6; ``select._clear``).
         Otherwise the full search runs (``source_landmarks`` features), reusing what the
         first stage refined, and gives the map ``staged=False`` gives. ``info["search"]``
         and the report say which search gave the map. False: the full search only
-        (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.97 s per pair in a batch, 98.44 ->
-        98.34 % under 0.25 (5 pairs changed); SCAPE 50: every map the same (RESULTS.md,
-        twelfth session). Not in the filled way of a piece (measured to lose there).
+        (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 ->
+        98.42 % under 0.25 (4 pairs changed); SCAPE 50: no pair changed by more than 2 points
+        (RESULTS.md, twelfth session). Not in the filled way of a piece (measured to lose
+        there).
     descriptor_seed : bool
         (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
         30 x 30 functional map of the shapes' wave kernel signatures with the
@@ -441,7 +443,10 @@ def match(
                     and part is None and tgt is not src and zoomout and orientation):
                 # the first seeding features' hypotheses; kept when their choice is clear
                 t_q = time.perf_counter()
-                first = dataclasses.replace(opts, source_landmarks=_FIRST_STAGE_SEEDS)
+                first = dataclasses.replace(
+                    opts, source_landmarks=_FIRST_STAGE_SEEDS,
+                    refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
+                    zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses))
                 out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings,
                               memo)
                 timings["first_stage"] = time.perf_counter() - t_q
@@ -771,8 +776,13 @@ _PARTIAL_DESCR_LANDMARKS = 4
 
 
 _SELF_SEEDS = 5  # source landmarks of the self-match behind the mirror hypothesis
-#: ``match(staged=True)``: source features seeding the first stage (the full search: 8)
+#: ``match(staged=True)``: source features seeding the first stage (the full search: 8), the
+#: hypotheses it refines after round 1 and the distinct ones it upsamples by ZoomOut (the full
+#: search: 12 and 8; measured on TOSCA 284, 12 and 8 gave 98.34 %, 8 and 6 98.42 % under 0.25
+#: and 1.97 -> 1.84 s per pair in a batch)
 _FIRST_STAGE_SEEDS = 3
+_FIRST_STAGE_KEEP = 8
+_FIRST_STAGE_CANDIDATES = 6
 #: ``fixed_weight`` of self-maps (:func:`symmetry` and the target's self-symmetry behind the
 #: mirror hypothesis): the symmetric self-map pays this weight times the share of samples it
 #: leaves in place. A reflection fixes a band around its plane (0.06-0.35 of the samples on
