@@ -289,6 +289,7 @@ def test_partial_scale_unit_stays_one_option_away(spot_holed):
     info = corr.info["partial"]
     assert info["scale"] == "unit" and info["ratio"] == pytest.approx(
         holed.area() / whole.area(), rel=1e-9)
+    assert corr.info["search"] == "full"  # no staged search on a piece
     W, _ = whole.numpy()
     err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
     assert corr.map.shape == (holed.n_vertices,) and np.mean(err < 0.05) > 0.5

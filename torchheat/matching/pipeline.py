@@ -255,8 +255,8 @@ def match(
         and the report say which search gave the map. False: the full search only
         (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 ->
         98.42 % under 0.25 (4 pairs changed); SCAPE 50: no pair changed by more than 2 points
-        (RESULTS.md, twelfth session). Not in the filled way of a piece (measured to lose
-        there).
+        (RESULTS.md, twelfth session). Never with ``partial=True``, nor in the filled way of
+        a piece (its gate was set on whole shapes; measured to lose on closed pieces).
     descriptor_seed : bool
         (``zoomout=True``, two whole shapes) Add one candidate that no landmark started: the
         30 x 30 functional map of the shapes' wave kernel signatures with the
@@ -439,8 +439,9 @@ def match(
                 partial_ratio=None if part is None else part.ratio)
             out, search = None, "full"
             memo: dict = {}  # refined hypotheses and ZoomOuts, shared by the two stages
-            if (staged and landmark is None and opts.source_landmarks > _FIRST_STAGE_SEEDS
-                    and part is None and tgt is not src and zoomout and orientation):
+            whole = part is None and unit_ratio is None  # not a piece, at either scale
+            if (staged and whole and landmark is None and tgt is not src and zoomout
+                    and orientation and opts.source_landmarks > _FIRST_STAGE_SEEDS):
                 # the first seeding features' hypotheses; kept when their choice is clear
                 t_q = time.perf_counter()
                 first = dataclasses.replace(
