@@ -177,11 +177,11 @@ def test_singular_factorisation_retries_with_another_shift(monkeypatch):
     W, A = _mesh_problem()
     real, shifts = sla.splu, []
 
-    def singular_once(M):
+    def singular_once(M, **kw):
         shifts.append(M.diagonal().min())
         if len(shifts) == 1:
             raise RuntimeError("Factor is exactly singular")
-        return real(M)
+        return real(M, **kw)
 
     monkeypatch.setattr(eigen.sla, "splu", singular_once)
     lam, _ = eigenpairs(W, A, 20)
@@ -218,7 +218,7 @@ def test_non_finite_operator_is_refused_with_the_mesh_name():
 def test_eigensolver_error_names_the_mesh(monkeypatch):
     V, F = generic_sphere(3, seed=7)
     monkeypatch.setattr(eigen, "DENSE_FALLBACK", 100)
-    monkeypatch.setattr(eigen.sla, "splu", lambda M: (_ for _ in ()).throw(
+    monkeypatch.setattr(eigen.sla, "splu", lambda M, **kw: (_ for _ in ()).throw(
         RuntimeError("Factor is exactly singular")))
     with pytest.raises(EigensolverError, match=r"^bunny\.off: the eigensolve failed"):
         HeatKernel(Mesh(V, F, name="bunny.off"), k=20, method="spectral")

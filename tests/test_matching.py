@@ -583,6 +583,24 @@ def test_background_self_symmetry_gives_the_same_maps(monkeypatch):
     assert exact(out[True][0], perm) >= 0.95
 
 
+def test_role_copies_share_the_self_symmetries_and_operators():
+    # the two ways of a partial match each match into a role copy of the whole (its times
+    # changed): the second copy must see both self-symmetries the first one computed (it saw
+    # none when only the first was shared: its ZoomOut choice then had no mirror partners)
+    # and the functional-map operators, which do not depend on the times
+    V, F = mirror_mesh(3)
+    T = prepare(Mesh(V, F))
+    a, b = tm.prepared._role_copy(T), tm.prepared._role_copy(T)
+    b.hk.set_times(T.hk.times * 0.5)
+    syms = tm.pipeline._self_symmetries(a, True, "auto", 3)
+    assert len(syms) >= 1  # the mirror
+    again = tm.pipeline._self_symmetries(b, True, "auto", 3)
+    assert len(again) == len(syms)
+    assert all(torch.equal(x[0], y[0]) and torch.equal(x[1], y[1])
+               for x, y in zip(syms, again, strict=True))
+    assert tm.fmap.shape_operators(b, 10, 8) is tm.fmap.shape_operators(a, 10, 8)
+
+
 def test_background_reraises_and_restores_threads():
     def boom():
         raise RuntimeError("in the background")

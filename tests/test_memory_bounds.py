@@ -54,6 +54,38 @@ def test_landmark_scores_in_candidate_batches(pair, monkeypatch):
     assert torch.equal(torch.argsort(got, stable=True), torch.argsort(ref, stable=True))
 
 
+def test_landmark_scores_reuse_candidate_trees(pair, monkeypatch):
+    """The k-d trees of a match's candidates are built once and reused for the next source
+    landmark (same scores as without the cache); a cache past its budget keeps none."""
+    S, T = pair
+    cands = torch.arange(0, T.n, 70)  # 10 candidates
+    ps = [int(p) for p in S.features[:2]]
+    refs = [tm.landmark_scores(S, T, p, cands) for p in ps]
+    built: list[int] = []
+    orig = tm.nn._kdtree
+
+    def spy(Y):
+        built.append(len(Y))
+        return orig(Y)
+
+    monkeypatch.setattr(tm.nn, "_kdtree", spy)
+    trees = tm.nn._TreeCache()
+    got = [tm.landmark_scores(S, T, p, cands, trees=trees) for p in ps]
+    assert len(built) == 10  # one tree per candidate, for both source landmarks
+    assert trees.used == 10 * 8 * T.n * (2 * T.hk.times.numel() + 2) <= trees.budget
+    # twice the first candidate, and a candidate not seen yet
+    more = tm.landmark_scores(S, T, ps[0], torch.cat([cands[:1], cands[:1], cands[:1] + 1]),
+                              trees=trees)
+    assert len(built) == 11 and float(more[0]) == float(more[1]) == float(got[0][0])
+    for g, r in zip(got, refs, strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-13, atol=0)
+        assert torch.equal(torch.argsort(g, stable=True), torch.argsort(r, stable=True))
+    none = tm.nn._TreeCache(budget_bytes=0)
+    again = tm.landmark_scores(S, T, ps[1], cands, trees=none)
+    assert none.trees == {} and none.used == 0 and len(built) == 21
+    torch.testing.assert_close(again, refs[1], rtol=1e-13, atol=0)
+
+
 def test_pruned_search_cluster_blocks_within_budget(pair, monkeypatch):
     S, T = pair
     samples = tm.prepared._fps(S, 48)

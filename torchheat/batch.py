@@ -76,7 +76,6 @@ import argparse
 import builtins
 import concurrent.futures as cf
 import contextlib
-import copy
 import csv
 import dataclasses
 import hashlib
@@ -387,9 +386,11 @@ def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
 
     def make() -> Any:
         # one eigensolve per shape: the role's copy has its own HeatKernel (a target's times
-        # are re-planned to its source's) and its own caches (self-symmetry, samples)
-        base = _BASES.get_or(key, make_base)
-        return dataclasses.replace(base, hk=copy.copy(base.hk), timings=dict(base.timings))
+        # are re-planned to its source's) and shares the caches that do not depend on them
+        # (self-symmetries, functional-map operators: a shape in both roles pays once)
+        from .matching.prepared import _role_copy
+
+        return _role_copy(_BASES.get_or(key, make_base))
 
     def make_base() -> Any:
         cached = getattr(shape, "data", None) is not None  # eigenbasis from the disk cache

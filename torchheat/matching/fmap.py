@@ -34,6 +34,7 @@ pair the ``k^2 x k^2`` normal equations, ``O(p k^4 + k^6)``: ~0.1 s.
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 import torch
 
 from .prepared import PreparedShape
@@ -489,8 +490,8 @@ def _solve_quadratic(coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.n
                      gram: np.ndarray | None = None,
                      hessians: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The minimiser of the (convex, quadratic) energy of :func:`descriptor_functional_map`:
-    its normal equations, ``ab`` unknowns for an ``a x b`` map, solved directly (``O(a^3
-    b^3)``: 0.03 s for ``a = b = 30``) instead of by L-BFGS (pyFM), which stops short of it.
+    its normal equations, ``ab`` unknowns for an ``a x b`` map, solved by Cholesky (``O(a^3
+    b^3)``: ~0.015 s for ``a = b = 30``) instead of by L-BFGS (pyFM), which stops short of it.
 
     ``gram`` (``a x a``, default the identity) weighs the descriptor term in space:
     ``|C B - A|^2`` becomes ``tr((C B)^T G C B) - 2 tr((C B)^T A)``, i.e. ``sum_x w(x) |Phi_M[x]
@@ -507,4 +508,8 @@ def _solve_quadratic(coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.n
                         else hessians[1])
     g = coef[0] * (A @ B.T).ravel()
     H[np.diag_indices_from(H)] += 1e-12 * np.trace(H) / H.shape[0]  # a null direction
-    return np.linalg.solve(H, g).reshape(mask.shape)
+    try:  # symmetric positive definite: Cholesky, half the cost of LU
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, check_finite=False), g,
+                                      check_finite=False).reshape(mask.shape)
+    except np.linalg.LinAlgError:  # not numerically positive definite
+        return np.linalg.solve(H, g).reshape(mask.shape)

@@ -16,7 +16,15 @@ from ..descriptors import (
     heat_kernel_map,
     ring_neighbors,
 )
-from .nn import WORK_BYTES, _kdtree, _rows_within, nearest_neighbors
+from .nn import (
+    WORK_BYTES,
+    _kdtree,
+    _resolve_engine,
+    _rows_within,
+    _tree_query,
+    _TreeCache,
+    nearest_neighbors,
+)
 from .prepared import PreparedShape, _descriptor, _fps
 
 __all__ = ["landmark_scores", "dense_map"]
@@ -33,6 +41,7 @@ def landmark_scores(
     engine: str = "auto",
     samples: torch.Tensor | None = None,
     memory_bytes: int = WORK_BYTES,
+    trees: _TreeCache | None = None,
 ) -> torch.Tensor:
     """Score every candidate ``q`` for the source landmark ``p``.
 
@@ -57,6 +66,10 @@ def landmark_scores(
     memory_bytes : int
         Working-set budget: the candidates' heat-kernel columns (``c x m x J``) are
         computed in batches within it, and it is the cdist engine's block budget.
+    trees : _TreeCache, optional
+        The caller's cache of the candidates' k-d trees (k-d tree engine, no ``q_fixed``):
+        a candidate scored again for another ``p`` of the same match (same target times)
+        reuses its tree. The scores are the same with or without it.
 
     Returns
     -------
@@ -86,6 +99,33 @@ def landmark_scores(
     step = _rows_within(target.n * J * target.hk.dtype.itemsize, cand.numel(), memory_bytes)
     fixed = heat_kernel_map(target.hk, qf) if qf else None
     scores = torch.empty(cand.numel(), dtype=torch.float64)
+    if trees is not None and not qf and _resolve_engine(engine, Dp) == "kdtree":
+        # one tree per candidate q, reused across the source landmarks of a match
+        at: dict[int, list[int]] = {}
+        for i, q in enumerate(cand.tolist()):
+            at.setdefault(q, []).append(i)
+
+        def score(q: int, tree: object) -> None:
+            d, _ = _tree_query(tree, Dp, math.inf)
+            scores[at[q]] = float((d.double() ** 2).mean())
+
+        todo = []
+        for q in at:
+            if (q, use_hks) in trees.trees:
+                score(q, trees.trees[(q, use_hks)])
+            else:
+                todo.append(q)
+        for c0 in range(0, len(todo), step):
+            Cq = target.hk.columns(torch.tensor(todo[c0 : c0 + step]), certify=False)
+            t = target.hk.times.to(Cq.dtype)
+            for i, q in enumerate(todo[c0 : c0 + step]):
+                parts = [Cq[i] * t]
+                if use_hks:
+                    parts.append(target.hks.to(Cq.dtype))
+                score(q, trees.get((q, use_hks),
+                                   lambda parts=parts: torch.cat(parts, dim=1).double().numpy()))
+            del Cq
+        return scores
     for c0 in range(0, cand.numel(), step):
         Cq = target.hk.columns(cand[c0 : c0 + step], certify=False)
         t = target.hk.times.to(Cq.dtype)
@@ -242,7 +282,8 @@ def _expand(src, tgt, p, q, p2, use_hks, radius, limit=2) -> list[list[tuple[int
 
 def _landmark_search(src: PreparedShape, tgt: PreparedShape, landmark, use_hks: bool,
                      engine: str, score_rows: torch.Tensor | None, max_features: int,
-                     n_candidates: int) -> tuple[int, torch.Tensor, torch.Tensor]:
+                     n_candidates: int, trees: _TreeCache | None = None
+                     ) -> tuple[int, torch.Tensor, torch.Tensor]:
     """The source landmark ``p`` and every target candidate ranked by ``E(p, q)``.
 
     ``landmark``: None (the strongest source feature), ``p``, or a known pair ``(p, q)``.
@@ -273,7 +314,7 @@ def _landmark_search(src: PreparedShape, tgt: PreparedShape, landmark, use_hks: 
             pool = feature_points(tgt.mesh, -dh, rings=2,
                                   max_features=max(int(max_features), 2 * n_candidates))
         scores = landmark_scores(src, tgt, p, pool, use_hks=use_hks, engine=engine,
-                                 samples=score_rows)
+                                 samples=score_rows, trees=trees)
         order = torch.argsort(scores, stable=True)
         cands, scores = pool[order], scores[order]
     return p, cands, scores

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -141,6 +142,45 @@ def _kdtree(Y: np.ndarray) -> cKDTree:
     return cKDTree(Y, balanced_tree=False, compact_nodes=False)
 
 
+def _resolve_engine(engine: str, X: torch.Tensor) -> str:
+    """``"auto"`` made concrete for queries ``X`` (see :func:`nearest_neighbors`)."""
+    if engine == "auto":
+        return "kdtree" if (X.device.type == "cpu" and X.shape[1] <= 40) else "cdist"
+    return engine
+
+
+def _tree_query(tree: cKDTree, X: torch.Tensor, p: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest neighbour in a k-d tree of every row of ``X`` (distances in ``X``'s dtype)."""
+    # as many query threads as torch may use (1 in batch workers: no oversubscription)
+    d, i = tree.query(X.detach().cpu().double().numpy(), k=1, p=p,
+                      workers=torch.get_num_threads())
+    return (torch.from_numpy(d).to(X.dtype).to(X.device),
+            torch.from_numpy(i.astype(np.int64)).to(X.device))
+
+
+class _TreeCache:
+    """k-d trees of descriptor sets kept for reuse within a byte budget (a tree over ``n``
+    rows of ``d`` columns is counted as ``8 n (d + 2)`` bytes: its data and index arrays);
+    past the budget, trees are built and not kept."""
+
+    def __init__(self, budget_bytes: int = WORK_BYTES) -> None:
+        self.budget = int(budget_bytes)
+        self.used = 0
+        self.trees: dict = {}
+
+    def get(self, key: object, rows: Callable[[], np.ndarray]) -> cKDTree:
+        """The tree cached under ``key``, else one of ``rows()`` (kept if it fits)."""
+        tree = self.trees.get(key)
+        if tree is None:
+            Y = rows()
+            tree = _kdtree(Y)
+            size = 8 * Y.shape[0] * (Y.shape[1] + 2)
+            if self.used + size <= self.budget:
+                self.trees[key] = tree
+                self.used += size
+        return tree
+
+
 def nearest_neighbors(
     X: torch.Tensor,
     Y: torch.Tensor,
@@ -177,17 +217,11 @@ def nearest_neighbors(
     """
     if X.ndim != 2 or Y.ndim != 2 or X.shape[1] != Y.shape[1]:
         raise ValueError(f"descriptor shapes {tuple(X.shape)} and {tuple(Y.shape)} do not match")
-    if engine == "auto":
-        engine = "kdtree" if (X.device.type == "cpu" and X.shape[1] <= 40) else "cdist"
+    engine = _resolve_engine(engine, X)
     if engine == "cdist":
         return _nn_cdist(X, Y.to(X.dtype), p, memory_bytes)
     if engine == "kdtree":
-        tree = _kdtree(Y.detach().cpu().double().numpy())
-        # as many query threads as torch may use (1 in batch workers: no oversubscription)
-        workers = torch.get_num_threads()
-        d, i = tree.query(X.detach().cpu().double().numpy(), k=1, p=p, workers=workers)
-        return (torch.from_numpy(d).to(X.dtype).to(X.device),
-                torch.from_numpy(i.astype(np.int64)).to(X.device))
+        return _tree_query(_kdtree(Y.detach().cpu().double().numpy()), X, p)
     raise ValueError(f"unknown engine {engine!r}; use 'auto', 'cdist' or 'kdtree'")
 
 

@@ -15,8 +15,6 @@ with a fixed scale, and the pipeline calls this stage, so it must not import the
 
 from __future__ import annotations
 
-import copy
-import dataclasses
 import time
 from collections.abc import Callable
 
@@ -26,19 +24,9 @@ from ..heat import threads
 from ..mesh import Mesh, MeshError
 from ..topology import fill_holes
 from .partial import _agreement, area_ratio, dense_partial_map
-from .prepared import PreparedShape, _as_prepared, _fps
+from .prepared import PreparedShape, _as_prepared, _fps, _role_copy
 from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
-
-
-def _role_copy(shape: PreparedShape) -> PreparedShape:
-    """A copy whose heat kernel times can be changed; the eigenbasis, the farthest-point
-    samples and the self-symmetry cache are shared."""
-    view = dataclasses.replace(shape, hk=copy.copy(shape.hk))
-    view.__dict__["_sym_cache"] = shape.__dict__.setdefault("_sym_cache", {})
-    if "_fps_cache" in shape.__dict__:
-        view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
-    return view
 
 
 def _prepared_pair(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict

@@ -29,6 +29,7 @@ from .landmarks import (
     dense_map,
     landmark_scores,
 )
+from .nn import WORK_BYTES, _TreeCache
 from .options import _Options
 from .orientation import _orientation, _triangles
 from .partial import (
@@ -395,8 +396,10 @@ def match(
         score_rows = None
         if score_samples is not None and score_samples < src.n:
             score_rows = _fps(src, score_samples)
+        # the candidates' k-d trees, kept for the further source features' scores
+        trees = _TreeCache(WORK_BYTES // 2)
         p, cands, scores = _landmark_search(src, tgt, landmark, use_hks, engine, score_rows,
-                                            max_features, n_candidates)
+                                            max_features, n_candidates, trees)
         p2 = _ambiguity(src, p, use_hks, score_rows, 0.05 * diam_s)
         timings["landmark_search"] = time.perf_counter() - t0
 
@@ -438,7 +441,8 @@ def match(
                 trimmed_twins=trimmed_twins, reoriented=reoriented,
                 partial_ratio=None if part is None else part.ratio)
             out, search = None, "full"
-            memo: dict = {}  # refined hypotheses and ZoomOuts, shared by the two stages
+            # refined hypotheses and ZoomOuts, shared by the two stages; the k-d trees
+            memo: dict = {"trees": trees}
             whole = part is None and unit_ratio is None  # not a piece, at either scale
             if (staged and whole and landmark is None and tgt is not src and zoomout
                     and orientation and opts.source_landmarks > _FIRST_STAGE_SEEDS):
@@ -555,7 +559,8 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                 dh = (tgt.hks[pool_e] - src.hks[pe].to(tgt.hks.dtype)).abs().amax(1)
                 pool_e = pool_e[torch.argsort(dh, stable=True)[:opt.extra_candidates]]
             sc = landmark_scores(src, tgt, pe, pool_e, use_hks=opt.use_hks,
-                                 engine=opt.engine, samples=extra_rows)
+                                 engine=opt.engine, samples=extra_rows,
+                                 trees=None if memo is None else memo.get("trees"))
             ce = pool_e[torch.argsort(sc, stable=True)]
             pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, diam_s)
             return [lm for i, q in enumerate(_distinct(ce, Vt, 0.05 * diam_t, opt.n_candidates))
@@ -724,7 +729,9 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             return s_
 
         sym = min(rest, key=sym_score) if rest else None
-        if opt.zoomout and sym is not None and tgt is src:  # a self-map: refine the symmetric
+        if opt.zoomout and sym is not None and tgt is src and opt.final_map:
+            # a self-map: refine the symmetric (for its dense map only; the target's
+            # self-symmetry behind the mirror hypotheses asks for none)
             sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
         if opt.zoomout and opt.partial_ratio is not None:
             # a piece: chosen by energy and orientation (a small piece's few modes do not

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import threading
 import time
 from collections.abc import Sequence
@@ -86,6 +88,25 @@ def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
         cached = farthest_point_sampling(V, max(k, 256))
         shape.__dict__["_fps_cache"] = cached
     return cached[:k]
+
+
+#: What a role copy shares with its shape: caches that depend on the eigenbasis and the mesh
+#: only, not on the heat kernel's times (the self-symmetries are computed at the shape's own
+#: times whatever the copy's)
+_SHARED_CACHES = ("_sym_cache", "_sym_alt_cache", "_fmap_operators")
+
+
+def _role_copy(shape: PreparedShape) -> PreparedShape:
+    """A copy whose heat kernel times can be changed (a target's are re-planned to its
+    source's); the eigenbasis, the farthest-point samples, the self-symmetries and the
+    functional-map operators are shared (computed once per shape, whichever copy asks
+    first)."""
+    view = dataclasses.replace(shape, hk=copy.copy(shape.hk), timings=dict(shape.timings))
+    for name in _SHARED_CACHES:
+        view.__dict__[name] = shape.__dict__.setdefault(name, {})
+    if "_fps_cache" in shape.__dict__:
+        view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
+    return view
 
 
 def _vertex_normals(mesh: Mesh) -> np.ndarray:
