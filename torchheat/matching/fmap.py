@@ -110,6 +110,9 @@ def _face_frames(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return n, dbl / 2.0, gB
 
 
+_FACE_CHUNK = 128  # faces per block of orientation_operators (a (128, p, k) block: ~1.5 MB)
+
+
 def orientation_operators(V: np.ndarray, F: np.ndarray, phi: np.ndarray, descr: np.ndarray
                           ) -> np.ndarray:
     """The orientation operators ``g -> <n x grad f_q, grad g>`` of descriptors ``f_q`` in a
@@ -147,9 +150,14 @@ def orientation_operators(V: np.ndarray, F: np.ndarray, phi: np.ndarray, descr: 
     rot_t = torch.from_numpy(np.ascontiguousarray(rot.transpose(0, 2, 1)))  # (m, p, 3)
     gp = torch.from_numpy(grad_phi)
     out = torch.zeros((k, p * k), dtype=torch.float64)
-    for a in range(0, m, 4096):  # faces in chunks: w is (chunk, p, k)
-        b = min(m, a + 4096)
-        w = torch.bmm(rot_t[a:b], gp[a:b])
+    for a in range(0, m, _FACE_CHUNK):  # faces in chunks: w is (chunk, p, k), in cache
+        b = min(m, a + _FACE_CHUNK)
+        r, g = rot_t[a:b], gp[a:b]
+        # w[f] = rot[f] @ grad_phi[f], an inner dimension of 3: three broadcast products
+        # (twice as fast as torch.bmm's batch of tiny products; equal to 1e-14)
+        w = r[:, :, 0:1] * g[:, None, 0, :]
+        w.addcmul_(r[:, :, 1:2], g[:, None, 1, :])
+        w.addcmul_(r[:, :, 2:3], g[:, None, 2, :])
         out += avg[a:b].T @ w.reshape(b - a, p * k)
     return out.reshape(k, p, k).permute(1, 0, 2).numpy()
 
