@@ -117,29 +117,31 @@ def landmark_scores(
                 todo.append(q)
         for c0 in range(0, len(todo), step):
             Cq = target.hk.columns(torch.tensor(todo[c0 : c0 + step]), certify=False)
-            t = target.hk.times.to(Cq.dtype)
             for i, q in enumerate(todo[c0 : c0 + step]):
-                parts = [Cq[i] * t]
-                if use_hks:
-                    parts.append(target.hks.to(Cq.dtype))
-                score(q, trees.get((q, use_hks),
-                                   lambda parts=parts: torch.cat(parts, dim=1).double().numpy()))
+                Dq = _candidate_descriptor(target, Cq[i], None, use_hks)
+                score(q, trees.get((q, use_hks), lambda Dq=Dq: Dq.double().numpy()))
             del Cq
         return scores
     for c0 in range(0, cand.numel(), step):
         Cq = target.hk.columns(cand[c0 : c0 + step], certify=False)
-        t = target.hk.times.to(Cq.dtype)
         for i in range(Cq.shape[0]):
-            parts = [] if fixed is None else [fixed]
-            parts.append(Cq[i] * t)
-            if use_hks:
-                parts.append(target.hks.to(Cq.dtype))
-            Dq = torch.cat(parts, dim=1)
+            Dq = _candidate_descriptor(target, Cq[i], fixed, use_hks)
             d, _ = nearest_neighbors(Dp, Dq, p=math.inf, engine=engine,
                                      memory_bytes=memory_bytes)
             scores[c0 + i] = float((d.double() ** 2).mean())
         del Cq
     return scores
+
+
+def _candidate_descriptor(target: PreparedShape, column: torch.Tensor,
+                          fixed: torch.Tensor | None, use_hks: bool) -> torch.Tensor:
+    """The target's descriptor for one candidate ``q``: the heat-kernel map of earlier
+    landmarks' images (``fixed``), ``t_j k_tj(q, .)`` from its columns ``[m, J]``, then the HKS."""
+    parts = [] if fixed is None else [fixed]
+    parts.append(column * target.hk.times.to(column.dtype))
+    if use_hks:
+        parts.append(target.hks.to(column.dtype))
+    return torch.cat(parts, dim=1)
 
 
 def dense_map(

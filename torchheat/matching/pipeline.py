@@ -4,7 +4,6 @@ direct and symmetric maps; the target's self-symmetry behind the mirror hypothes
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import time
@@ -44,7 +43,7 @@ from .partial import (
     shared_band,
 )
 from .partial_scale import _match_filled, _partial_auto
-from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps
+from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps, _role_copy
 from .quality import MapQuality, map_quality
 from .refine import _dense_final, _fixed_share, _is_identity, _Refiner
 from .result import Correspondence, _numbering
@@ -830,12 +829,8 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
         return cache[key]
     view = shape
     if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
-        view = dataclasses.replace(shape, hk=copy.copy(shape.hk))  # own solver, own times
+        view = _role_copy(shape)  # own solver at its own times, the shape's caches
         view.hk.set_times(own)
-        if "_fps_cache" in shape.__dict__:
-            view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
-        # the descriptor operators depend on the eigenbasis only: one cache for both
-        view.__dict__["_fmap_operators"] = shape.__dict__.setdefault("_fmap_operators", {})
     corr = match(view, view, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS, fixed_weight=SYMMETRY_FIXED_WEIGHT)
