@@ -153,28 +153,13 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     info = corr.info["partial"]
     assert info["ratio"] == pytest.approx(piece.area() / whole.area(), rel=1e-9)
     assert set(info["quality"]) >= {"piece", "filled"}
+    assert info["closed_margin"] < 0.75  # the capped front is not matched clearly: both ways
     # the scale is chosen by agreement with the landmark-free map + 0.5 quality
     qual, agree = info["quality"], info["agreement"]
     assert set(agree) == set(qual) and all(0.0 <= a <= 1.0 for a in agree.values())
     won = max(qual, key=lambda s: agree[s] + 0.5 * qual[s])
     assert qual[won] == pytest.approx(q.quality)
     assert agree[won] > 0.3  # the right map agrees with the coarse landmark-free one
-
-
-def test_partial_auto_keeps_a_clear_piece_map_without_the_unit_scale(spot_piece, monkeypatch):
-    # a piece-scale map whose agreement + 0.5 quality reaches the bar is kept at once (the
-    # cow reads 0.885, under the default 0.9: lowered here to take that path)
-    from torchheat.matching import partial_scale
-
-    piece, whole, truth = spot_piece
-    monkeypatch.setattr(partial_scale, "_PARTIAL_ENOUGH", 0.5)
-    corr = match(piece, whole, partial=True)
-    info = corr.info["partial"]
-    assert set(info["quality"]) == {"piece"} and "not tried" in info["chosen_by"]
-    assert "other_scale" not in corr.info["timings"] or corr.info["timings"]["other_scale"] == 0
-    W, _ = whole.numpy()
-    err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
-    assert np.mean(err < 0.05) > 0.9
 
 
 def test_partial_auto_skips_the_filled_piece_when_closed_it_is_too_small(spot_piece):
@@ -250,17 +235,30 @@ def test_filled_piece_closes_the_holes_and_maps_the_piece(spot_holed, monkeypatc
         match(holed, whole, partial=True, partial_scale="holes")
 
 
-def test_partial_auto_tries_the_filled_piece_when_the_piece_is_most_of_the_whole(spot_holed):
-    # the piece way reads clear here (agreement + 0.5 quality >= 0.9) but is coarse; with 96 %
-    # of the area the filled piece is nearly the whole and is tried anyway, and wins
+def test_partial_auto_keeps_a_sure_filled_map_without_the_piece_way(spot_holed, monkeypatch):
+    # closed, the holed cow is nearly the whole: its match chooses clearly (margin >= 0.75,
+    # direct orientation) and its map of the piece reads a high quality, so the piece's own
+    # scale is not tried; forced to run both ways, the arbiter keeps the same map
+    from torchheat.matching import partial_scale
+
     holed, whole, truth = spot_holed
     corr = match(holed, whole, partial=True)
     info = corr.info["partial"]
-    assert set(info["quality"]) >= {"piece", "filled"} and info["scale"] == "filled"
-    assert info["agreement"]["piece"] + 0.5 * info["quality"]["piece"] >= 0.9
+    assert set(info["quality"]) == {"filled"} and info["scale"] == "filled"
+    assert "piece's own scale not tried" in info["chosen_by"]
+    assert info["closed_margin"] >= 0.75 and info["closed_orientation"] >= 0.6
+    assert info["quality"]["filled"] >= partial_scale._FILLED_SURE
+    assert corr.info["timings"]["other_scale"] == 0
     W, _ = whole.numpy()
     err = np.linalg.norm(W[corr.map.numpy()] - W[truth], axis=1) / whole.bbox_diagonal()
     assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
+
+    monkeypatch.setattr(partial_scale, "_FILLED_SURE", 1.01)  # never sure: both ways
+    both = match(holed, whole, partial=True)
+    info = both.info["partial"]
+    assert set(info["quality"]) == {"piece", "filled"} and info["scale"] == "filled"
+    assert info["chosen_by"].startswith("agreement")
+    assert torch.equal(both.map, corr.map)
 
 
 def test_a_piece_whose_holes_cannot_be_closed(spot_holed, monkeypatch):

@@ -27,6 +27,7 @@ from .partial import _agreement, area_ratio, dense_partial_map
 from .prepared import PreparedShape, _as_prepared, _fps, _role_copy
 from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
+from .select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
 
 
 def _prepared_pair(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict
@@ -41,28 +42,26 @@ def _prepared_pair(source: Mesh | PreparedShape, target: Mesh | PreparedShape, k
 
 def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict,
                   match_fn: Callable[..., Correspondence]) -> Correspondence:
-    """``partial_scale="auto"``: the piece matched at the whole's scale and with its holes
-    filled; the map that agrees best with the landmark-free map (plus half its quality) wins
-    (see :func:`torchheat.match`). ``kw``: ``match``'s keyword arguments; ``match_fn``:
-    ``match`` itself, called with ``partial_scale="piece"`` or ``"filled"``."""
+    """``partial_scale="auto"``: the piece matched with its holes filled and at the whole's
+    scale; the filled map is kept at once when it is sure (:func:`_filled_sure`), otherwise
+    the map that agrees best with the landmark-free map (plus half its quality) wins (see
+    :func:`torchheat.match`). ``kw``: ``match``'s keyword arguments; ``match_fn``: ``match``
+    itself, called with ``partial_scale="filled"`` or ``"piece"``."""
     t0 = time.perf_counter()
     src, tgt, _ = _prepared_pair(source, target, kw)
-    most = area_ratio(src.mesh, tgt.mesh) >= _PARTIAL_MOST  # the filled way is always tried
     not_tried = None
     try:
         closed = _filled_of(src).area() / tgt.mesh.area()  # may exceed 1 (cone patches)
     except MeshError as err:
         closed, not_tried = None, str(err)  # the holes cannot be closed: the piece way alone
     t_prep = time.perf_counter() - t0
-    out = []  # (quality, way, corr, agreement or None)
+    out = []  # (quality, way, corr)
     too_small = closed is not None and closed < _FILLED_LEAST
-    dense_free = None
-    skipped = False
-    pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
+    sure = False
     # (a third way, the piece once more from its strongest features when both maps read
     # suspect, was dropped: on SHREC'16 it ran on 26 of 150 pieces, gave the same map on 24,
     # and was chosen once, worse than the filled map it displaced — RESULTS.md)
-    for scale in ("piece", "filled"):
+    for scale in ("filled", "piece"):
         if scale == "filled" and (closed is None or too_small):
             continue
         try:
@@ -73,15 +72,25 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
             not_tried = str(err)  # the closed piece could not be matched: the piece way alone
             continue
         q = corr.quality.quality if corr.quality is not None else -1.0
-        if dense_free is None:
-            dense_free = _landmark_free_dense(src, tgt, corr)
-        a = None if dense_free is None else _agreement(tgt, corr.map[pts], dense_free[pts])
-        out.append((q, scale, corr, a))
-        if (len(out) == 1 and not most and a is not None
-                and a + _PARTIAL_AUTO_QUALITY * q >= _PARTIAL_ENOUGH):
-            skipped = True  # the piece-scale map is clearly right: the filled piece is not tried
+        out.append((q, scale, corr))
+        if scale == "filled" and _filled_sure(corr):
+            sure = True  # the piece way is not tried
             break
-    if dense_free is None:
+    piece = next((x[2] for x in out if x[1] == "piece"), None)
+    dense_free = None if piece is None else _landmark_free_dense(src, tgt, piece)
+    agreement = {}
+    if dense_free is not None:
+        pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
+        agreement = {x[1]: _agreement(tgt, x[2].map[pts], dense_free[pts]) for x in out}
+    if sure:
+        best = out[0]
+        part = best[2].info["partial"]
+        chosen_by = (f"the closed piece's match is clear (score margin "
+                     f"{part['closed_margin']:.2f} >= {_CLEAR_MARGIN}, orientation "
+                     f"{part['closed_orientation']:+.2f} >= {_ZO_ORIENT_CLIP}) and its map "
+                     f"of the piece reads quality {best[0]:.2f} >= {_FILLED_SURE}: the piece's "
+                     "own scale not tried")
+    elif not agreement:
         best = max(out, key=lambda x: x[0])
         chosen_by = "quality"
     else:
@@ -92,9 +101,8 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         # filled piece instead (RESULTS.md, seventh session) the cow reads piece 0.885, filled
         # 0.754. Not used to choose: the closed piece's own full-match quality (holed pieces
         # read 0.25-1 when right, but the capped front of the cow reads 0.43 and is wrong)
-        best = max(out, key=lambda x: x[3] + _PARTIAL_AUTO_QUALITY * x[0])
-        chosen_by = "agreement with the landmark-free map + 0.5 quality" + (
-            " (clear at the piece's scale: the filled piece not tried)" if skipped else "")
+        best = max(out, key=lambda x: agreement[x[1]] + _PARTIAL_AUTO_QUALITY * x[0])
+        chosen_by = "agreement with the landmark-free map + 0.5 quality"
     if too_small:
         chosen_by = (f"closed, the piece would cover {100 * closed:.1f} % of the whole "
                      f"(< {100 * _FILLED_LEAST:.0f} %): too little to pass for the whole, the "
@@ -104,10 +112,11 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
                             "closed_ratio": closed,
                             "quality": {x[1]: x[0] for x in out}}
     for x in out:
-        if "closed_quality" in x[2].info["partial"]:
-            corr.info["partial"]["closed_quality"] = x[2].info["partial"]["closed_quality"]
-    if dense_free is not None:
-        corr.info["partial"]["agreement"] = {x[1]: x[3] for x in out}
+        for key in ("closed_quality", "closed_margin", "closed_orientation"):
+            if key in x[2].info["partial"]:
+                corr.info["partial"][key] = x[2].info["partial"][key]
+    if agreement:
+        corr.info["partial"]["agreement"] = agreement
     if not_tried is not None:
         corr.info["partial"]["chosen_by"] += f" (the filled piece failed: {not_tried})"
     tm = corr.info["timings"]
@@ -116,6 +125,18 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
                             if x[2] is not corr)
     tm["total"] = time.perf_counter() - t0
     return corr
+
+
+def _filled_sure(corr: Correspondence) -> bool:
+    """Whether the filled way's map is kept without trying the piece's own scale: the closed
+    piece's match chose clearly among whole maps (score margin >= ``select._CLEAR_MARGIN``,
+    orientation >= ``select._ZO_ORIENT_CLIP``: the staged search's test of a clear choice)
+    and its map of the piece reads a quality of at least ``_FILLED_SURE``."""
+    part = corr.info["partial"]
+    margin, orient = part.get("closed_margin"), part.get("closed_orientation")
+    return (corr.quality is not None and margin is not None and orient is not None
+            and _clear({"zo_margin": margin, "zo_orientation": orient})
+            and corr.quality.quality >= _FILLED_SURE)
 
 
 #: The filled way is tried only when the closed piece covers this share of the whole's area:
@@ -135,17 +156,16 @@ _PARTIAL_AUTO_QUALITY = 0.5
 _PARTIAL_AUTO_POINTS = 1000
 
 
-#: A piece-scale map scoring this (agreement + 0.5 quality) is kept without trying the filled
-#: piece: offline on SHREC'16 (the runs behind _PARTIAL_AUTO_QUALITY, against the unit scale
-#: then) it skipped the second way on 39 % of the cuts and 5 % of the holes and changed no
-#: choice (0.8: 61 % / 5 %, no change either; kept at 0.9 for a margin)
-_PARTIAL_ENOUGH = 0.9
-#: ...unless the piece covers this much of the whole: closed, it is then nearly the whole, and
-#: its full match can be finer than a piece-scale map that reads clear (a cow with eight small
-#: holes, 96 % of the area: piece way 0.98 agreement + 0.5 * 0.81, 71 % of the vertices within
-#: 2 % of the diagonal; filled 0.99 + 0.5 * 0.95, 100 %). On SHREC'16 one skipped pair reaches
-#: it (cuts_michael_11, 90 %): the filled way is tried and loses, the map is the same.
-_PARTIAL_MOST = 0.8
+#: The filled way's map of the piece must read at least this quality (besides a clear choice
+#: of the closed match) to be kept without the piece way. Both ways run offline on SHREC'16
+#: (Euclidean proxy, share within 0.25 sqrt(area) of the truth; RESULTS.md, fourteenth
+#: session): the holed pieces whose filled map is sure are right (31 of 50, skipping the
+#: piece way; the arbiter chose the worse way on 8 of 50 otherwise); a capped cut piece can
+#: be clear and wrong (cuts_cat_4: margin 3.4, quality 0.26, 9 % right against the piece
+#: way's 91 %); at 0.25 it would be kept, at 0.3 none of the 27 cut pieces with both ways is
+#: changed. Between 0.3 and SUSPECT_BELOW (0.25) is the only knob here; no threshold was
+#: fitted beyond it.
+_FILLED_SURE = 0.3
 
 
 def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspondence
@@ -236,6 +256,9 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         # choose (right maps of holed pieces read 0.25-1, but a capped cut piece can read as
         # high: the wrong map of the cow's capped front, 0.43)
         info["partial"]["closed_quality"] = full.quality.quality
+        # and how clearly it was chosen among whole maps (:func:`_filled_sure`)
+        info["partial"]["closed_margin"] = full.quality.margin
+        info["partial"]["closed_orientation"] = full.quality.orientation
     info["timings"]["prepare"] = info["timings"].get("prepare", 0.0) + t_prep
     info["timings"]["total"] = time.perf_counter() - t0
 

@@ -295,9 +295,10 @@ def match(
         landmark-free partial functional map (share of 1000 source points mapped within 0.15
         sqrt(area) of it) plus half its partial quality (rectangular functional map defect and
         orientation; no ground truth), or the quality alone with ``descriptor_seed=False``;
-        ``info["partial"]`` says which and why. The filled way is skipped when the closed
-        piece covers less than 60 % of the whole's area, or when the piece-scale map reads
-        clear (agreement + 0.5 quality >= 0.9) and the piece covers under 80 % of the whole.
+        ``info["partial"]`` says which and why. The filled way runs first and is kept
+        alone when sure: its closed match chose clearly (score margin >= 0.75, orientation
+        >= 0.6) and its map of the piece reads quality >= 0.3. It is skipped when the closed
+        piece covers less than 60 % of the whole's area.
     partial_landmarks : {"deepest", "strongest"}
         (``partial=True``, piece scale) Order of the source's interior feature points, the
         first of which is the landmark ``p``: farthest from the boundary first (default), or
