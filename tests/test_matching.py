@@ -599,6 +599,14 @@ def test_role_copies_share_the_self_symmetries_and_operators():
     assert all(torch.equal(x[0], y[0]) and torch.equal(x[1], y[1])
                for x, y in zip(syms, again, strict=True))
     assert tm.fmap.shape_operators(b, 10, 8) is tm.fmap.shape_operators(a, 10, 8)
+    # whichever copy computes a cache first gives it back (the samples were shared only when
+    # the shape had them before it was copied)
+    U = prepare(Mesh(V, F))
+    c = tm.prepared._role_copy(U)
+    assert U.caches.fps is None
+    samples = tm.prepared._fps(c, 50)
+    assert U.caches.fps is c.caches.fps and torch.equal(tm.prepared._fps(U, 50), samples)
+    assert c._desc_cache is not U._desc_cache  # a match's memo is the copy's own
 
 
 def test_background_reraises_and_restores_threads():
@@ -629,7 +637,7 @@ def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
     assert D2 is not D1 and not torch.allclose(D1, D2)
     assert torch.equal(D2, torch.cat([heat_kernel_map(S.hk, [3]), S.hks], dim=1))
     match(S, S)
-    assert "_desc_cache" not in S.__dict__
+    assert S._desc_cache == {}  # emptied after the match
 
 
 @pytest.mark.skipif(not (_SHARED / "tosca_remeshed_5k").is_dir(), reason="no shared/data")

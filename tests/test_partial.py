@@ -140,6 +140,22 @@ def test_partial_descriptor_map_places_a_piece_without_landmarks(spot_piece):
         partial_descriptor_map(ps, pt, tiny)
 
 
+def test_interior_view_samples_the_interior_and_leaves_the_source_alone(spot_piece):
+    # the piece way draws landmarks and samples from a view of the source whose sample order
+    # is the interior's; the source's own samples (shared with its other copies) are untouched
+    from torchheat.matching.prepared import _fps
+
+    piece, whole, _ = spot_piece
+    ps, pt = prepare(piece), prepare(whole)
+    before = _fps(ps, 300).clone()
+    setup = partial._setup(ps, pt, partial.PARTIAL_MARGIN)
+    view = partial._interior_view(ps, setup)
+    assert setup.interior[_fps(view, 100).numpy()].all()
+    assert not setup.interior[before.numpy()].all()  # the plain samples reach the cut
+    assert torch.equal(_fps(ps, 300), before) and view.caches is not ps.caches
+    assert setup.interior[view.features.numpy()].all()
+
+
 def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     piece, whole, truth = spot_piece
     corr = match(piece, whole, partial=True)

@@ -366,7 +366,7 @@ def shape_operators(shape: PreparedShape, k: int, n_descr: int
     >>> [a.shape for a in shape_operators(s, 10, 8)]
     [(10, 8), (8, 10, 10), (8, 10, 10)]
     """
-    cache = shape.__dict__.setdefault("_fmap_operators", {})
+    cache = shape.caches.fmap_operators
     lam = shape.hk.eigenvalues.double().numpy()
     key = (int(k), int(n_descr), lam.size)
     if key in cache:

@@ -61,7 +61,7 @@ from .fmap import (
     wave_kernel_signature,
 )
 from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
-from .prepared import PreparedShape, _fps
+from .prepared import PreparedShape, ShapeCaches, _fps
 from .refine import _refine_factors
 from .zoomout import ZoomOutResult, _sizes, lstsq
 
@@ -230,7 +230,8 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepe
     pre-filling the copy's sample cache with an interior farthest-point order makes all of
     them avoid the cut (the copy shares the heat kernel; the caller's shape is untouched).
     """
-    view = dataclasses.replace(src, hk=copy.copy(src.hk))  # own times, shared eigenbasis
+    # own times, shared eigenbasis; its own caches (its samples are the interior's only)
+    view = dataclasses.replace(src, hk=copy.copy(src.hk), caches=ShapeCaches())
     feats = src.features.numpy()
     keep = feats[setup.interior[feats]]
     if order == "deepest":
@@ -245,7 +246,7 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepe
     inner = np.flatnonzero(setup.interior)
     V, _ = src.mesh.numpy()
     order = farthest_point_sampling(V[inner], min(inner.size, _INTERIOR_SAMPLES))
-    view.__dict__["_fps_cache"] = torch.as_tensor(inner[order.numpy()], dtype=torch.int64)
+    view.caches.fps = torch.as_tensor(inner[order.numpy()], dtype=torch.int64)
     return view
 
 

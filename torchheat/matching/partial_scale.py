@@ -221,9 +221,9 @@ def filled_piece(mesh: Mesh) -> Mesh:
 
 def _filled_of(shape: PreparedShape) -> Mesh:
     """:func:`filled_piece` of a prepared shape's mesh, computed once per shape."""
-    cached = shape.__dict__.get("_filled_mesh")
+    cached = shape.caches.filled_mesh
     if cached is None:
-        cached = shape.__dict__["_filled_mesh"] = filled_piece(shape.mesh)
+        cached = shape.caches.filled_mesh = filled_piece(shape.mesh)
     return cached
 
 

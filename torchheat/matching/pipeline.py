@@ -468,7 +468,7 @@ def match(
             descr_fmap = out.get("descriptor_fmap")
     for shape in (src, tgt):  # the memo serves one call; do not hold ~64 MB per shape
         with _DESC_LOCK:
-            shape.__dict__.pop("_desc_cache", None)
+            shape._desc_cache.clear()
     timings["total"] = time.perf_counter() - t_start
     # orientation of the direct map as measured where it is clear (the ZoomOut map), else on
     # the dense map when the quality is first asked for
@@ -801,7 +801,7 @@ _FIRST_STAGE_CANDIDATES = 6
 #: symmetries 97.6 -> 98.8 % under 0.25. Through the mirror partners (not used to set it):
 #: SCAPE 50 pairs 89.3 -> 91.6 %; TOSCA 284 pairs 96.8 % on 1000 points either way (on 50
 #: points 3 pairs better, 3 worse); RESULTS.md, ninth session. The next distinct reversing
-#: self-map kept beside it (``_sym_alt_cache``) is still picked by energy alone.
+#: self-map kept beside it (``caches.self_symmetry_alternates``) is still picked by energy alone.
 SYMMETRY_FIXED_WEIGHT = 10.0
 
 
@@ -811,7 +811,7 @@ def _sym_key(shape: PreparedShape, log_floor: float | None) -> tuple:
 
 
 def _self_symmetry_cached(shape: PreparedShape, log_floor: float | None) -> bool:
-    return _sym_key(shape, log_floor) in shape.__dict__.get("_sym_cache", {})
+    return _sym_key(shape, log_floor) in shape.caches.self_symmetry
 
 
 def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidates: int,
@@ -825,7 +825,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     """
     own = shape.hk.times if shape.own_times is None else shape.own_times
     key = _sym_key(shape, log_floor)
-    cache = shape.__dict__.setdefault("_sym_cache", {})
+    cache = shape.caches.self_symmetry
     if key in cache:
         return cache[key]
     view = shape
@@ -862,7 +862,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
             alts.append((S, g))
             break
     cache[key] = out
-    shape.__dict__.setdefault("_sym_alt_cache", {})[key] = alts
+    shape.caches.self_symmetry_alternates[key] = alts
     return out
 
 
@@ -872,7 +872,7 @@ def _self_symmetries(shape: PreparedShape, use_hks: bool, engine: str, n_candida
     self-symmetry of :func:`_self_symmetry` first, then the next distinct one of the
     self-match's hypotheses (cached with it)."""
     _self_symmetry(shape, use_hks, engine, n_candidates, log_floor)
-    return shape.__dict__.get("_sym_alt_cache", {}).get(_sym_key(shape, log_floor), [])
+    return shape.caches.self_symmetry_alternates.get(_sym_key(shape, log_floor), [])
 
 
 def _symmetries_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None

@@ -25,12 +25,40 @@ from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh, MeshError
 
-__all__ = ["CachedShape", "PreparedShape", "is_cached_shape", "prepare"]
+__all__ = ["CachedShape", "PreparedShape", "ShapeCaches", "is_cached_shape", "prepare"]
 
 
 # ------------------------------------------------------------------------------------------
 # prepared shapes
 # ------------------------------------------------------------------------------------------
+@dataclass
+class ShapeCaches:
+    """What a prepared shape computes once on demand and shares with its role copies: results
+    that depend on the mesh and the eigenbasis only, not on the heat kernel's times (a
+    target's times are re-planned to each source's, :func:`_role_copy`).
+
+    Attributes
+    ----------
+    fps : torch.Tensor or None, int64, shape (s,)
+        Farthest-point order of the vertices (:func:`_fps`; longer requests extend it).
+    self_symmetry : dict
+        ``(own times, log floor) -> (samples, images) or None``: the shape's intrinsic
+        self-symmetry (``pipeline._self_symmetry``), computed at the shape's own times.
+    self_symmetry_alternates : dict
+        Same keys: up to two distinct orientation-reversing self-maps (``_self_symmetries``).
+    fmap_operators : dict
+        ``(k, n_descr, eigenpairs) -> (red, mult, orient)`` (:func:`.fmap.shape_operators`).
+    filled_mesh : Mesh or None
+        The shape with its holes closed (``partial_scale._filled_of``).
+    """
+
+    fps: torch.Tensor | None = None
+    self_symmetry: dict = field(default_factory=dict)
+    self_symmetry_alternates: dict = field(default_factory=dict)
+    fmap_operators: dict = field(default_factory=dict)
+    filled_mesh: Mesh | None = None
+
+
 @dataclass
 class PreparedShape:
     """A mesh with everything matching needs, computed once.
@@ -62,6 +90,10 @@ class PreparedShape:
     # hk.times become its source's; its self-symmetry is computed at these, once)
     _hks: torch.Tensor | None = None
     _hks_times: torch.Tensor | None = None
+    caches: ShapeCaches = field(default_factory=ShapeCaches, repr=False, compare=False)
+    # one match's memo of landmark descriptors (time-dependent, emptied after each match);
+    # init=False: every copy gets its own
+    _desc_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -82,31 +114,19 @@ def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
     """First ``k`` farthest-point samples of the shape's vertices, cached on the shape (the
     greedy order is deterministic, so shorter requests are prefixes of longer ones)."""
     k = min(int(k), shape.n)
-    cached = shape.__dict__.get("_fps_cache")
+    cached = shape.caches.fps
     if cached is None or cached.numel() < k:
         V, _ = shape.mesh.numpy()
-        cached = farthest_point_sampling(V, max(k, 256))
-        shape.__dict__["_fps_cache"] = cached
+        cached = shape.caches.fps = farthest_point_sampling(V, max(k, 256))
     return cached[:k]
-
-
-#: What a role copy shares with its shape: caches that depend on the eigenbasis and the mesh
-#: only, not on the heat kernel's times (the self-symmetries are computed at the shape's own
-#: times whatever the copy's)
-_SHARED_CACHES = ("_sym_cache", "_sym_alt_cache", "_fmap_operators")
 
 
 def _role_copy(shape: PreparedShape) -> PreparedShape:
     """A copy whose heat kernel times can be changed (a target's are re-planned to its
-    source's); the eigenbasis, the farthest-point samples, the self-symmetries and the
-    functional-map operators are shared (computed once per shape, whichever copy asks
-    first)."""
-    view = dataclasses.replace(shape, hk=copy.copy(shape.hk), timings=dict(shape.timings))
-    for name in _SHARED_CACHES:
-        view.__dict__[name] = shape.__dict__.setdefault(name, {})
-    if "_fps_cache" in shape.__dict__:
-        view.__dict__["_fps_cache"] = shape.__dict__["_fps_cache"]
-    return view
+    source's); the eigenbasis and the :class:`ShapeCaches` (farthest-point samples,
+    self-symmetries, functional-map operators, filled mesh) are shared: computed once per
+    shape, whichever copy asks first."""
+    return dataclasses.replace(shape, hk=copy.copy(shape.hk), timings=dict(shape.timings))
 
 
 def _vertex_normals(mesh: Mesh) -> np.ndarray:
@@ -339,7 +359,7 @@ def _descriptor(shape: PreparedShape, landmarks, use_hks: bool, columns=None) ->
         key = (tuple(int(v) for v in np.atleast_1d(np.asarray(landmarks))), bool(use_hks),
                tuple(shape.hk.times.tolist()))
         with _DESC_LOCK:
-            hit = shape.__dict__.get("_desc_cache", {}).get(key)
+            hit = shape._desc_cache.get(key)
         if hit is not None:
             return hit
     D = heat_kernel_map(shape.hk, landmarks, columns)
@@ -348,7 +368,7 @@ def _descriptor(shape: PreparedShape, landmarks, use_hks: bool, columns=None) ->
     if key is not None:
         limit = _DESC_CACHE_BYTES // max(1, D.element_size() * D.numel())
         with _DESC_LOCK:
-            cache = shape.__dict__.setdefault("_desc_cache", {})
+            cache = shape._desc_cache
             while cache and len(cache) >= limit:
                 cache.pop(next(iter(cache)))  # oldest first
             if limit > 0:
