@@ -37,7 +37,7 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from .prepared import PreparedShape
+from .prepared import PreparedShape, _memoised
 
 __all__ = ["wave_kernel_signature", "orientation_operators", "shape_operators",
            "descriptor_operators", "descriptor_functional_map", "landmark_functional_map"]
@@ -485,12 +485,7 @@ def _pair_hessians(memo: dict | None, key: tuple, dcomm: tuple[np.ndarray, np.nd
                    orient: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The unweighted commutativity Hessians of a pair's operators, memoised in ``memo`` (the
     caller's, one per pair of shapes) under ``key``; ``O(p k^4)`` each (~10 ms at k = 30)."""
-    if memo is not None and key in memo:
-        return memo[key]
-    out = (_comm_hessian(*dcomm), _comm_hessian(*orient))
-    if memo is not None:
-        memo[key] = out
-    return out
+    return _memoised(memo, key, lambda: (_comm_hessian(*dcomm), _comm_hessian(*orient)))
 
 
 def _solve_quadratic(coef: list[float], A: np.ndarray, B: np.ndarray, mask: np.ndarray,

@@ -43,7 +43,15 @@ from .partial import (
     shared_band,
 )
 from .partial_scale import _match_filled, _partial_auto
-from .prepared import _DESC_LOCK, CachedShape, PreparedShape, _as_prepared, _fps, _role_copy
+from .prepared import (
+    _DESC_LOCK,
+    CachedShape,
+    PreparedShape,
+    _as_prepared,
+    _fps,
+    _memoised,
+    _role_copy,
+)
 from .quality import MapQuality, map_quality
 from .refine import _dense_final, _fixed_share, _is_identity, _Refiner
 from .result import Correspondence, _numbering
@@ -54,7 +62,6 @@ from .select import (
     _dense_partial_guarded,
     _dense_spectral,
     _descriptor_symmetry,
-    _memoised,
     _spectral_choice,
     _zoomout_final,
 )

@@ -8,7 +8,7 @@ import copy
 import dataclasses
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -119,6 +119,17 @@ def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
         V, _ = shape.mesh.numpy()
         cached = shape.caches.fps = farthest_point_sampling(V, max(k, 256))
     return cached[:k]
+
+
+def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:
+    """``memo[key]``, computed by ``compute()`` the first time (always, without a memo): the
+    per-match memo a match's stages share (refined hypotheses, ZoomOuts, functional-map
+    Hessians)."""
+    if memo is None:
+        return compute()
+    if key not in memo:
+        memo[key] = compute()
+    return memo[key]
 
 
 def _role_copy(shape: PreparedShape) -> PreparedShape:

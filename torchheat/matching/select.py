@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +26,7 @@ from .fmap import descriptor_functional_map, landmark_functional_map
 from .options import _Options
 from .orientation import _orientation, _orientation_signs, _triangles
 from .partial import dense_partial_map, partial_zoomout
-from .prepared import PreparedShape, _fps
+from .prepared import PreparedShape, _fps, _memoised
 from .quality import map_quality
 from .refine import _Refiner
 from .zoomout import ZoomOutResult, dense_spectral_map, spectral_map, zoomout
@@ -78,15 +77,6 @@ def _zoomout_final(src: PreparedShape, tgt: PreparedShape, seed_rows: torch.Tens
                                    step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
         return zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
                        k_end=k_end, step=_ZO_STEP, targets=_fps(tgt, _ZO_TARGETS))
-
-
-def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:
-    """``memo[key]``, computed by ``compute()`` the first time (always, without a memo)."""
-    if memo is None:
-        return compute()
-    if key not in memo:
-        memo[key] = compute()
-    return memo[key]
 
 
 def _memo_zoomout(memo: dict | None, phi_s: torch.Tensor, phi_t: torch.Tensor,
