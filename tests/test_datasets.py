@@ -260,6 +260,21 @@ def test_cache_hit_parameter_change_and_file_change(spot_files, tmp_path, monkey
     assert len(files) == 3 and all(f.endswith(".npz") for f in files)  # no temp files left
 
 
+def test_cache_entries_are_readable_by_the_team(spot_files, tmp_path):
+    # a cache shared by several users (torchheat preprocess --cache /shared/cache) needs the
+    # umask's permissions, not mkstemp's owner-only 0o600 (what entries got before)
+    import stat
+
+    a, _ = spot_files
+    old = os.umask(0o022)
+    try:
+        ds = ShapeCollection([a], preprocess=Preprocess(k=6), cache_dir=tmp_path / "c")
+        ds[0]
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(ds.cache_path(0).stat().st_mode) == 0o644
+
+
 def test_corrupt_cache_entry_is_recomputed(spot_files, tmp_path, monkeypatch):
     calls = CallCounter(monkeypatch)
     a, _ = spot_files

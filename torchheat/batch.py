@@ -84,7 +84,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 import traceback
 import uuid
@@ -96,6 +95,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+
+from ._files import atomic_write
 
 __all__ = [
     "CURVE_THRESHOLDS",
@@ -887,25 +888,8 @@ def _json_default(x: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
-def _atomic_write(path: Path, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` to a temporary file next to ``path``, fsync, then ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 def _write_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda t: t.write_text(text))
+    atomic_write(path, lambda t: t.write_text(text))
 
 
 @contextlib.contextmanager
@@ -1196,7 +1180,7 @@ def run(
                     continue
                 arrays = rec.pop("_arrays", None)
                 if arrays is not None:
-                    _atomic_write(out / "maps" / f"{rec['name']}.npz",
+                    atomic_write(out / "maps" / f"{rec['name']}.npz",
                                   lambda t, a=arrays: np.savez(t, **a))
                 if rec["key"] in by_key:  # an executor delivered a pair twice
                     continue
@@ -1414,7 +1398,7 @@ def summarize_run(
     _write_text(out / "summary.csv", buf.getvalue())
     curves = _mean_curves(results)
     if curves:
-        _atomic_write(out / "curves.png",
+        atomic_write(out / "curves.png",
                       lambda t: plot_cumulative(curves, t, title=f"{title}: mean cumulative "
                                                 f"error ({len(results)} pairs)"))
     if config is not None and int(config.get("pictures", 0)) > 0:
@@ -1443,7 +1427,7 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
             pair = pc[index[rec["name"]]]
             d = rec["direct"] if rec.get("flip") is None else rec["flip"]
             title = f"{rec['name']}: {100 * d['under_0.25']:.0f}% < 0.25"
-            _atomic_write(png, lambda t, p=pair, f=fmap, ti=title: color_transfer(
+            atomic_write(png, lambda t, p=pair, f=fmap, ti=title: color_transfer(
                 p.source.mesh, p.target.mesh, f, t, title=ti))
         except Exception as exc:  # noqa: BLE001 - pictures are optional
             warnings.warn(f"picture for {rec['name']} failed: {exc}", stacklevel=2)

@@ -37,6 +37,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from ._files import file_mode
 from .meshio import FORMATS_HELP
 
 __all__ = ["main", "run", "build_parser", "write_map", "CLIError"]
@@ -87,13 +88,6 @@ def _check_output(path: Path, what: str = "output") -> Path:
     return path
 
 
-def _file_mode() -> int:
-    """Permissions of a newly created file under the current umask (mkstemp uses 0600)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
 class _Outputs:
     """Collects output files as temporary files and publishes them together.
 
@@ -113,7 +107,7 @@ class _Outputs:
         writer(tmp)
 
     def commit(self) -> None:
-        mode = _file_mode()
+        mode = file_mode()
         for tmp, path in self._staged:
             os.chmod(tmp, mode)
             os.replace(tmp, path)

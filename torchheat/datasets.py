@@ -53,7 +53,6 @@ import json
 import os
 import re
 import sys
-import tempfile
 import time
 import warnings
 import zipfile
@@ -66,6 +65,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ._files import atomic_write
 from .eigen import DEFAULT_EIGENPAIRS
 from .heat import HeatKernel
 from .mesh import Mesh, load_mesh
@@ -603,19 +603,11 @@ class ShapeCollection(Dataset):
         arrays = {k: _to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
         arrays.update({k: np.float64(data[k]) for k in _SCALAR_KEYS})
         arrays["meta"] = np.array(self._meta(sha))
-        fd, tmp = tempfile.mkstemp(prefix=f".{cpath.stem}.", suffix=".tmp", dir=cpath.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, cpath)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+
+        atomic_write(cpath, write)
 
 
 @dataclass(frozen=True)

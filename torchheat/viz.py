@@ -16,12 +16,13 @@ meshes with more than ``max_faces`` faces are drawn as a depth-sorted vertex sca
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from ._files import atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
     from .mesh import Mesh
@@ -307,19 +308,9 @@ def color_transfer(
                         top=0.86 if title else 0.9, wspace=0.04)
 
     out = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".",
-                               prefix=f".{out.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
             fig.savefig(fh, format="png", dpi=dpi)
-        mask = os.umask(0)  # mkstemp creates 0600; give the usual permissions
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, out)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+
+    atomic_write(out, write)
     return out

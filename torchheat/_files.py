@@ -1,0 +1,67 @@
+"""Atomic file writes, shared by every module that writes results or caches.
+
+A file is written to a temporary file in its destination directory, flushed to disk and
+renamed into place (:func:`os.replace`, atomic on POSIX and Windows): a reader sees the old
+file or the new one, never a partial one, and a failed write leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+def file_mode() -> int:
+    """Permissions of a newly created file under the current umask (``0o666 & ~umask``;
+    :func:`tempfile.mkstemp` itself creates ``0o600``, unreadable to a team sharing a
+    cache)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[Path], Any]) -> Path:
+    """``write(tmp)`` to a temporary file next to ``path``, then rename it into place.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination; its directory is created if missing.
+    write : callable
+        Called with the temporary file's path (same directory, same suffix as ``path``, so
+        writers that pick a format by suffix keep working); writes the whole content.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``. The file gets the permissions a new file gets under the current umask; its
+        content is fsync'ed before the rename. On any exception the temporary file is removed
+        and the exception re-raised; ``path`` is untouched.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "sub" / "x.txt"
+    >>> atomic_write(p, lambda t: t.write_text("hello")).read_text()
+    'hello'
+    """
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, file_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
