@@ -790,8 +790,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --partial: 'piece' matches SOURCE at TARGET's scale (suits a "
                         "piece cut off), 'filled' closes its holes and matches it as a whole "
                         "shape (suits a scan with holes), 'unit' matches it as a whole at unit "
-                        "area with its holes open; 'auto' (default) tries piece and filled "
-                        "and keeps the map that agrees best with the landmark-free partial map")
+                        "area with its holes open; 'auto' (default) tries filled, keeps it "
+                        "when its match is clear, else also piece and keeps the map that "
+                        "agrees best with the landmark-free partial map")
     m.set_defaults(func=_cmd_match)
 
     s = sub.add_parser(
