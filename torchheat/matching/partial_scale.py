@@ -1,7 +1,7 @@
-"""A piece matched two ways, the map that agrees best with the landmark-free partial map kept
-(``partial_scale="auto"``, see :func:`torchheat.match`); and the second way itself,
-``partial_scale="filled"``: the piece with its holes closed (:func:`filled_piece`), matched as
-a whole shape.
+"""A piece matched two ways (``partial_scale="auto"``, see :func:`torchheat.match`): with its
+holes closed (:func:`filled_piece`) and matched as a whole shape (``partial_scale="filled"``),
+kept at once when that match is sure (:func:`_filled_sure`); otherwise also at the whole's
+scale, and the map that agrees best with the landmark-free partial map is kept.
 
 Why two: a piece cut off by a plane is matched best at the whole's scale with small times
 (:mod:`.partial`); a scan with many holes puts every vertex near a boundary, which crushes
