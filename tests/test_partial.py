@@ -277,6 +277,40 @@ def test_partial_auto_keeps_a_sure_filled_map_without_the_piece_way(spot_holed, 
     assert torch.equal(both.map, corr.map)
 
 
+def test_deep_share_of_a_flat_rectangle():
+    # the share of a piece's area at least 0.1 sqrt(area(whole)) from its boundary: on a 1 x
+    # 0.75 rectangle the inner rectangle (1 - 2d) x (0.75 - 2d), up to half a cell of lumped
+    # mass along its edge
+    from types import SimpleNamespace
+
+    from torchheat.matching.partial_scale import _deep_share
+
+    V, F = flat_grid(41, 31, 1.0, 0.75)  # spacing 0.025
+    ps = prepare(Mesh(V, F), k=10)
+    for whole_area, d in ((1.0, 0.1), (4.0, 0.2)):
+        whole = SimpleNamespace(mesh=SimpleNamespace(area=lambda a=whole_area: a))
+        exact = (1 - 2 * d) * (0.75 - 2 * d) / 0.75
+        assert abs(_deep_share(ps, whole) - exact) < 0.05, (whole_area, exact)
+
+
+def test_partial_auto_keeps_the_filled_map_of_a_piece_without_interior(spot_holed, monkeypatch):
+    # where both ways run, a piece with little area far from its boundary keeps the filled
+    # map: the arbiter's evidence is read at the piece's scale. Forced both ways here (never
+    # sure), then the rule on and off
+    from torchheat.matching import partial_scale
+
+    holed, whole, _ = spot_holed
+    monkeypatch.setattr(partial_scale, "_FILLED_SURE", 1.01)
+    monkeypatch.setattr(partial_scale, "_DEEP_LEAST", 1.01)  # every piece lacks interior
+    corr = match(holed, whole, partial=True)
+    info = corr.info["partial"]
+    assert set(info["quality"]) == {"piece", "filled"} and info["scale"] == "filled"
+    assert "the filled map kept" in info["chosen_by"] and "agreement" not in info["chosen_by"]
+    monkeypatch.setattr(partial_scale, "_DEEP_LEAST", 0.0)  # never: the arbiter chooses
+    info = match(holed, whole, partial=True).info["partial"]
+    assert info["chosen_by"].startswith("agreement")
+
+
 def test_a_piece_whose_holes_cannot_be_closed(spot_holed, monkeypatch):
     # a patch with a zero-area face: "filled" names the piece and what to do instead; "auto"
     # keeps the piece way and says why the other was not used

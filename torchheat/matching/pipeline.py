@@ -304,8 +304,11 @@ def match(
         orientation; no ground truth), or the quality alone with ``descriptor_seed=False``;
         ``info["partial"]`` says which and why. The filled way runs first and is kept
         alone when sure: its closed match chose clearly (score margin >= 0.75, orientation
-        >= 0.6) and its map of the piece reads quality >= 0.3. It is skipped when the closed
-        piece covers less than 60 % of the whole's area.
+        >= 0.6) and its map of the piece reads quality >= 0.3. When both ways run, the filled
+        map is also kept without arbitration if less than a third of the piece's area lies
+        0.1 sqrt(area(whole)) or more from its boundary (the arbiter's evidence is read at the
+        piece's scale). The filled way is skipped when the closed piece covers less than 60 %
+        of the whole's area.
     partial_landmarks : {"deepest", "strongest"}
         (``partial=True``, piece scale) Order of the source's interior feature points, the
         first of which is the landmark ``p``: farthest from the boundary first (default), or
