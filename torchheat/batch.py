@@ -1181,7 +1181,7 @@ def run(
                 arrays = rec.pop("_arrays", None)
                 if arrays is not None:
                     atomic_write(out / "maps" / f"{rec['name']}.npz",
-                                  lambda t, a=arrays: np.savez(t, **a))
+                                 lambda t, a=arrays: np.savez(t, **a))
                 if rec["key"] in by_key:  # an executor delivered a pair twice
                     continue
                 by_key[rec["key"]] = rec
@@ -1399,8 +1399,8 @@ def summarize_run(
     curves = _mean_curves(results)
     if curves:
         atomic_write(out / "curves.png",
-                      lambda t: plot_cumulative(curves, t, title=f"{title}: mean cumulative "
-                                                f"error ({len(results)} pairs)"))
+                     lambda t: plot_cumulative(curves, t, title=f"{title}: mean cumulative "
+                                               f"error ({len(results)} pairs)"))
     if config is not None and int(config.get("pictures", 0)) > 0:
         _pictures(results, out, config)
     return rows[0]

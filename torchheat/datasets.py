@@ -599,15 +599,10 @@ class ShapeCollection(Dataset):
             return None
 
     def _save_cache(self, cpath: Path, sha: str, data: dict[str, Any]) -> None:
-        cpath.parent.mkdir(parents=True, exist_ok=True)
         arrays = {k: _to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
         arrays.update({k: np.float64(data[k]) for k in _SCALAR_KEYS})
         arrays["meta"] = np.array(self._meta(sha))
-        def write(tmp: Path) -> None:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-
-        atomic_write(cpath, write)
+        atomic_write(cpath, lambda tmp: np.savez(tmp, **arrays))  # tmp ends in .npz as cpath
 
 
 @dataclass(frozen=True)

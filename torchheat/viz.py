@@ -307,10 +307,4 @@ def color_transfer(
     fig.subplots_adjust(left=0.01, right=0.97 if err is not None else 0.99, bottom=0.01,
                         top=0.86 if title else 0.9, wspace=0.04)
 
-    out = Path(path)
-    def write(tmp: Path) -> None:
-        with open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=dpi)
-
-    atomic_write(out, write)
-    return out
+    return atomic_write(Path(path), lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))

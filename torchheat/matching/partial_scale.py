@@ -28,7 +28,7 @@ from .partial import _agreement, area_ratio, boundary_distance, dense_partial_ma
 from .prepared import PreparedShape, _as_prepared, _fps, _role_copy
 from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
-from .select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
+from .select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear_choice
 
 
 def _prepared_pair(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict
@@ -147,9 +147,8 @@ def _filled_sure(corr: Correspondence) -> bool:
     orientation >= ``select._ZO_ORIENT_CLIP``: the staged search's test of a clear choice)
     and its map of the piece reads a quality of at least ``_FILLED_SURE``."""
     part = corr.info["partial"]
-    margin, orient = part.get("closed_margin"), part.get("closed_orientation")
-    return (corr.quality is not None and margin is not None and orient is not None
-            and _clear({"zo_margin": margin, "zo_orientation": orient})
+    return (corr.quality is not None
+            and _clear_choice(part.get("closed_margin"), part.get("closed_orientation"))
             and corr.quality.quality >= _FILLED_SURE)
 
 

@@ -195,9 +195,14 @@ _CLEAR_MARGIN = 0.75
 def _clear(direct: dict) -> bool:
     """Whether a first-stage choice is clear enough to skip the full search (see
     ``_CLEAR_MARGIN``); a choice without a rival is not."""
-    margin = direct.get("zo_margin")
+    return _clear_choice(direct.get("zo_margin"), direct.get("zo_orientation"))
+
+
+def _clear_choice(margin: float | None, orientation: float | None) -> bool:
+    """A choice among whole maps is clear: its score margin is at least ``_CLEAR_MARGIN`` and
+    its orientation at least ``_ZO_ORIENT_CLIP`` (None: no rival, or not measured)."""
     return (margin is not None and margin >= _CLEAR_MARGIN
-            and direct.get("zo_orientation", -1.0) >= _ZO_ORIENT_CLIP)
+            and orientation is not None and orientation >= _ZO_ORIENT_CLIP)
 
 
 _TEAR_WEIGHT = 10.0  # weight of the tear (share of torn neighbour pairs) in the ZoomOut score
