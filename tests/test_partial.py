@@ -398,6 +398,48 @@ def test_cli_partial(spot_piece, tmp_path, capsys):
     assert "swap the shapes" in capsys.readouterr().err
 
 
+def test_cli_partial_solves_the_closed_piece_in_the_background(spot_holed, tmp_path,
+                                                               monkeypatch):
+    # the command line closes the piece's holes with numpy before torch and solves the closed
+    # mesh in its eigensolve workers; the filled way takes those eigenpairs (only when they
+    # belong to exactly its closed piece) and the map is the in-process one
+    import sys
+
+    from test_cli import write_off
+
+    from torchheat.cli import _closed_source
+    from torchheat.matching import partial_scale
+    from torchheat.topology import fill_holes
+
+    holed, whole, _ = spot_holed
+    a, b = tmp_path / "holed.off", tmp_path / "whole.off"
+    write_off(a, *holed.numpy())
+    write_off(b, *whole.numpy())
+    V2, F2 = _closed_source([holed.numpy(), whole.numpy()])
+    want = fill_holes(*holed.numpy())
+    assert np.array_equal(V2, want[0]) and np.array_equal(F2, want[1])
+    assert _closed_source([whole.numpy(), whole.numpy()]) is None  # no holes
+    small = cut(whole, 2, 0.3)  # closed, far less than the whole: the filled way is not tried
+    assert _closed_source([small.numpy(), whole.numpy()]) is None
+
+    taken = []
+    offer = partial_scale.offer_filled
+    monkeypatch.setattr(partial_scale, "offer_filled",
+                        lambda *a, **k: taken.append(offer(*a, **k)) or taken[-1])
+    maps = []
+    for workers in ("0", "2"):
+        out = tmp_path / f"map_w{workers}.txt"
+        assert main(["match", str(a), str(b), "-o", str(out), "--partial", "--threads", "1",
+                     "--workers", workers]) == 0
+        maps.append(np.loadtxt(out, dtype=np.int64))
+    assert taken == ([True] if sys.platform.startswith("linux") else [])
+    assert np.array_equal(maps[0], maps[1])
+    # arrays that are not the piece's closed mesh are refused
+    ps = prepare(holed)
+    assert not partial_scale.offer_filled(ps, V2[:-1], F2, (None, None))
+    assert ps.caches.filled_eigenpairs is None
+
+
 # ------------------------------------------------------------------------------------------
 # SHREC'16 loader and barycentric evaluation
 # ------------------------------------------------------------------------------------------

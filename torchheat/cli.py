@@ -183,8 +183,32 @@ def _largest_piece(V: Any, F: Any) -> Any:
     return largest_component(np.asarray(F).astype(np.int64, copy=False), len(V))
 
 
+def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
+    """The first mesh (a piece) with its holes closed (:func:`torchheat.topology.fill_holes`)
+    when the filled way of a partial match will want it — it has holes, and closed it covers
+    at least :data:`torchheat.topology.FILLED_LEAST` of the second mesh's area — else None.
+    Numpy only (it runs before torch is imported)."""
+    import numpy as np
+
+    from .topology import FILLED_LEAST, face_areas, fill_holes
+
+    (V, F), (Vt, Ft) = solved[0], solved[1]
+    if not (_plausible(V, F) and _plausible(Vt, Ft)):
+        return None
+    V, F = np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64)
+    try:
+        V2, F2 = fill_holes(V, F)
+    except Exception:  # noqa: BLE001 - the match itself reports what is wrong with the piece
+        return None
+    Vt, Ft = np.asarray(Vt, dtype=np.float64), np.asarray(Ft, dtype=np.int64)
+    if len(V2) == len(V) or face_areas(V2, F2).sum() < FILLED_LEAST * face_areas(Vt, Ft).sum():
+        return None
+    return V2, F2
+
+
 def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
                       check: Callable[[list[Any]], Any] | None = None,
+                      close_source: bool = False,
                       ) -> tuple[list[Any], list[Any], Any, dict[str, float]]:
     """Read ``paths``, solve their eigenpairs in background processes, prepare the shapes.
 
@@ -196,6 +220,11 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     Meshes too small to match are refused (:func:`torchheat.matching._check_matchable`), then
     ``check(meshes)`` runs on the validated meshes before anything is prepared. Returns the
     meshes, the prepared shapes, what ``check`` returned and timings.
+
+    ``close_source``: the first mesh is a piece to match ``partial=True`` into the second; its
+    holes are closed with numpy too and the closed mesh is solved by the workers as well
+    (:func:`_closed_source`), then given to the prepared piece
+    (:func:`torchheat.matching.partial_scale.offer_filled`) for the filled way.
     """
     import numpy as np
 
@@ -210,7 +239,9 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     solved = [(V, F) if k is None else (np.asarray(V)[k], restrict_faces(np.asarray(F), k, len(V)))
               for (V, F), k in zip(arrays, pieces, strict=True)]
     workers = args.workers if all(_plausible(V, F) for V, F in arrays) else 0  # Mesh refuses
-    with EigenWorkers(solved, k=DEFAULT_EIGENPAIRS, processes=workers) as bg:
+    closed = _closed_source(solved) if close_source and workers != 0 else None
+    jobs = solved if closed is None else [*solved, closed]
+    with EigenWorkers(jobs, k=DEFAULT_EIGENPAIRS, processes=workers) as bg:
         from .mesh import Mesh  # imports torch, while the workers solve
 
         meshes = []
@@ -233,6 +264,10 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
         t1 = time.perf_counter()
         prepared = [prepare(m, times=args.times, k=DEFAULT_EIGENPAIRS, eigenpairs=eigenpairs(i),
                             num_threads=args.threads) for i, m in enumerate(meshes)]
+        if closed is not None and (eig := bg.get(len(solved))) is not None:
+            from .matching.partial_scale import offer_filled
+
+            offer_filled(prepared[0], *closed, eig)
         n_bg = bg.running
     t2 = time.perf_counter()
     where = f"in {n_bg} background process{'es' if n_bg != 1 else ''}" if n_bg \
@@ -242,11 +277,12 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
 
 
 def _timings(t_prep: dict[str, float], corr: Any) -> dict[str, float]:
-    """The command's preparation timings, then those of ``match`` (its own "prepare" is ~0:
-    it got prepared shapes)."""
-    names = {"total": "match total"}
+    """The command's preparation timings, then those of ``match``; its own "prepare" (~0 for
+    prepared shapes, but a partial match's filled way prepares the closed piece there) is
+    shown as "match prepare" when it takes 10 ms or more."""
+    names = {"total": "match total", "prepare": "match prepare"}
     return {**t_prep, **{names.get(k, k): v for k, v in corr.info.get("timings", {}).items()
-                         if k != "prepare"}}
+                         if k != "prepare" or v >= 0.01}}
 
 
 def _mesh_index(v: int, mesh: Any, path: str, name: str, role: str) -> int:
@@ -381,7 +417,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     (source, target), (ps, pt), landmark, t_prep = _load_and_prepare(
         [args.source, args.target], args,
-        check=lambda ms: _check_landmark(args.landmark, ms[0], ms[1], args.source, args.target))
+        check=lambda ms: _check_landmark(args.landmark, ms[0], ms[1], args.source, args.target),
+        close_source=args.partial and args.partial_scale in (None, "auto", "filled"))
 
     from .matching import match
 

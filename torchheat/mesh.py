@@ -58,7 +58,14 @@ import scipy.sparse as sp
 import torch
 
 from .meshio import SUPPORTED_FORMATS, MeshError, MeshWarning, _plural, read_arrays
-from .topology import adjacency_from_keys, components, edge_keys, orient_faces, restrict_faces
+from .topology import (
+    adjacency_from_keys,
+    components,
+    edge_keys,
+    face_areas,
+    orient_faces,
+    restrict_faces,
+)
 from .topology import largest_component as _largest_component
 
 __all__ = ["Mesh", "MeshError", "MeshWarning", "load_mesh", "SUPPORTED_FORMATS"]
@@ -140,12 +147,6 @@ def _faces_tensor(faces: Any, label: str) -> torch.Tensor:
             f"{label}: face indices have dtype {arr.dtype}; pass an integer array of vertex indices"
         )
     return torch.from_numpy(np.array(arr, dtype=np.int64, copy=True)).contiguous()
-
-
-def _face_areas_np(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    a = V[F[:, 0]]
-    cross = np.cross(V[F[:, 1]] - a, V[F[:, 2]] - a)
-    return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
 
 
 def _bbox_diagonal_np(V: np.ndarray) -> float:
@@ -298,7 +299,7 @@ class Mesh:
             )
 
     def _check_degenerate(self, V: np.ndarray, F: np.ndarray) -> None:
-        areas = _face_areas_np(V, F)
+        areas = face_areas(V, F)
         tol = DEGENERATE_REL_AREA * _bbox_diagonal_np(V) ** 2
         bad = np.flatnonzero(areas <= tol)
         if bad.size:

@@ -162,6 +162,18 @@ def boundary_distance(mesh: Mesh, scale: float = 1.0) -> np.ndarray:
     return np.asarray(d, dtype=np.float64)
 
 
+def _boundary_distance(shape: PreparedShape, scale: float) -> np.ndarray:
+    """:func:`boundary_distance` of a prepared shape's mesh, computed once per ``scale``
+    (kept in its caches, shared by its role copies); read-only."""
+    cache = shape.caches.boundary_distance
+    key = float(scale)
+    if key not in cache:
+        dist = boundary_distance(shape.mesh, key)
+        dist.setflags(write=False)
+        cache[key] = dist
+    return cache[key]
+
+
 @dataclass(frozen=True)
 class _PartialSetup:
     """What a partial match knows about its source: the area ratio and the usable vertices."""
@@ -175,7 +187,7 @@ class _PartialSetup:
 def _setup(src: PreparedShape, tgt: PreparedShape, margin: float) -> _PartialSetup:
     """Area ratio and interior of the source; refuses a piece without enough interior."""
     r = area_ratio(src.mesh, tgt.mesh)
-    dist = boundary_distance(src.mesh, math.sqrt(tgt.mesh.area()))
+    dist = _boundary_distance(src, math.sqrt(tgt.mesh.area()))
     interior = dist >= margin
     n_in = int(interior.sum())
     if n_in < _MIN_INTERIOR:
@@ -566,7 +578,7 @@ def _partial_terms(src: PreparedShape, tgt: PreparedShape, r: float, k: int, n_d
     mask = _resolvent_mask(lam_s[:k_s], lam_t[:k])
     coef = _coefficients(A, B, mask, (Dm, Dn), (Om, On), weights)
     if dist is None:
-        dist = boundary_distance(src.mesh, scale)
+        dist = _boundary_distance(src, scale)
     w = np.clip(np.where(np.isfinite(dist), dist, np.inf) / ramp, 0.0, 1.0) * mass_s
     gram = (ph_s.T * w[None, :]) @ ph_s
     return coef, (ph_s.T * w[None, :]) @ d_s, B, mask, (Dm, Dn), (Om, On), gram

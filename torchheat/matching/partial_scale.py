@@ -19,12 +19,13 @@ import math
 import time
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from ..heat import threads
 from ..mesh import Mesh, MeshError
-from ..topology import fill_holes
-from .partial import _agreement, area_ratio, boundary_distance, dense_partial_map
+from ..topology import FILLED_LEAST, fill_holes
+from .partial import _agreement, _boundary_distance, area_ratio, dense_partial_map
 from .prepared import PreparedShape, _as_prepared, _fps, _role_copy
 from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
@@ -136,7 +137,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
 def _deep_share(src: PreparedShape, tgt: PreparedShape) -> float:
     """Share of the piece's area (lumped vertex masses) at least ``_DEEP_DISTANCE
     sqrt(area(whole))`` from its boundary, along edges."""
-    dist = boundary_distance(src.mesh, math.sqrt(tgt.mesh.area()))
+    dist = _boundary_distance(src, math.sqrt(tgt.mesh.area()))
     mass = src.hk.vertex_mass.double().numpy()
     return float(mass[dist >= _DEEP_DISTANCE].sum() / mass.sum())
 
@@ -158,7 +159,7 @@ def _filled_sure(corr: Correspondence) -> bool:
 #: 0.6, 67 are matched as well or better at the piece's scale, and on the 6 others the
 #: arbiter kept the piece way anyway; thresholds 0.5-0.65 score within 0.3 points of each
 #: other). Skipping it saves the second way's eigensolve and match on 70 % of the cut pieces.
-_FILLED_LEAST = 0.6
+_FILLED_LEAST = FILLED_LEAST  # 0.6, defined without torch for the command line
 
 
 #: Weight of the quality beside the agreement when ``partial_scale="auto"`` chooses a scale
@@ -253,6 +254,56 @@ def _filled_of(shape: PreparedShape) -> Mesh:
     return cached
 
 
+def offer_filled(shape: PreparedShape, V: np.ndarray, F: np.ndarray, eigenpairs: tuple
+                 ) -> bool:
+    """Give a piece the eigenpairs of its closed mesh, solved elsewhere from arrays.
+
+    The command line closes a piece's holes with numpy before it imports torch and solves the
+    closed mesh in its background eigensolve workers (:class:`torchheat.eigen.EigenWorkers`);
+    the filled way (:func:`_match_filled`) then prepares the closed piece with them instead
+    of solving in-process. They are taken only if ``(V, F)`` is exactly the piece's
+    :func:`filled_piece`, so the match is the same either way.
+
+    Parameters
+    ----------
+    shape : PreparedShape
+        The piece.
+    V, F : numpy.ndarray, shapes (n + h, 3) and (m + f, 3)
+        The arrays the eigenpairs belong to (:func:`torchheat.topology.fill_holes` of the
+        piece's arrays).
+    eigenpairs : (lam, phi)
+        Shapes (k,) and (n + h, k).
+
+    Returns
+    -------
+    bool
+        Whether they were taken.
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> from torchheat.eigen import cotan_eigenpairs
+    >>> from torchheat.topology import fill_holes
+    >>> m = trimesh.creation.icosphere(3)
+    >>> V, F = m.vertices, m.faces[m.triangles_center[:, 2] < 0.9]  # a cap cut off
+    >>> piece = torchheat.prepare(torchheat.Mesh(V, F, largest_component=True))
+    >>> V2, F2 = fill_holes(*piece.mesh.numpy())
+    >>> offer_filled(piece, V2, F2, cotan_eigenpairs(V2, F2, 100))
+    True
+    """
+    try:
+        filled = _filled_of(shape)
+    except MeshError:
+        return False  # the filled way reports it
+    if filled is shape.mesh:
+        return False
+    V0, F0 = filled.numpy()
+    if not (np.array_equal(V0, V) and np.array_equal(F0, F)):
+        return False
+    shape.caches.filled_eigenpairs = eigenpairs
+    return True
+
+
 def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw: dict,
                   match_fn: Callable[..., Correspondence]) -> Correspondence:
     """``partial_scale="filled"``: the piece with its holes closed (:func:`filled_piece`),
@@ -263,7 +314,8 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     ratio = area_ratio(src.mesh, tgt.mesh)
     filled = _filled_of(src)
     with threads(kw["num_threads"]):
-        fsrc = src if filled is src.mesh else _as_prepared(filled, **pkw)
+        fsrc = src if filled is src.mesh else _as_prepared(
+            filled, **pkw, eigenpairs=src.caches.filled_eigenpairs)
     t_prep = time.perf_counter() - t0
     # no trimmed twins: measured, they hurt the closed pieces (SHREC'16 holes 81.4 -> 77.8 %;
     # david_10 97 -> 13 %), whose patches are not part of the whole's surface; no staged

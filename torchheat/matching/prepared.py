@@ -50,6 +50,12 @@ class ShapeCaches:
         ``(k, n_descr, eigenpairs) -> (red, mult, orient)`` (:func:`.fmap.shape_operators`).
     filled_mesh : Mesh or None
         The shape with its holes closed (``partial_scale._filled_of``).
+    boundary_distance : dict
+        ``scale -> (n,)`` distances of the vertices to the mesh boundary in units of ``scale``
+        (``partial._boundary_distance``; a piece is measured in its whole's sqrt(area)).
+    filled_eigenpairs : (lam, phi) or None
+        Eigenpairs of ``filled_mesh`` solved elsewhere (the command line's background workers,
+        ``partial_scale.offer_filled``); the filled way prepares the closed piece with them.
     """
 
     fps: torch.Tensor | None = None
@@ -57,6 +63,8 @@ class ShapeCaches:
     self_symmetry_alternates: dict = field(default_factory=dict)
     fmap_operators: dict = field(default_factory=dict)
     filled_mesh: Mesh | None = None
+    filled_eigenpairs: tuple | None = None
+    boundary_distance: dict = field(default_factory=dict)
 
 
 @dataclass
