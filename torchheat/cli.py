@@ -190,7 +190,8 @@ def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
     Numpy only (it runs before torch is imported)."""
     import numpy as np
 
-    from .topology import FILLED_LEAST, face_areas, fill_holes
+    from .geometry import face_areas
+    from .topology import FILLED_LEAST, fill_holes
 
     (V, F), (Vt, Ft) = solved[0], solved[1]
     if not (_plausible(V, F) and _plausible(Vt, Ft)):

@@ -34,6 +34,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from .geometry import face_areas
+
 __all__ = [
     "cotmatrix_scipy",
     "massmatrix_scipy",
@@ -98,18 +100,6 @@ def cotmatrix_scipy(V: np.ndarray, F: np.ndarray) -> sp.csr_matrix:
     W = W - sp.diags(np.asarray(W.sum(axis=1)).ravel())
     W.sum_duplicates()
     return W.tocsr()
-
-
-def face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Unsigned triangle areas, shape (m,).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> face_areas(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
-    array([0.5])
-    """
-    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 
 def massmatrix_scipy(V: np.ndarray, F: np.ndarray, kind: str) -> sp.csr_matrix:

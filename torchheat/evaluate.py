@@ -54,6 +54,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .geometry import face_areas
+
 __all__ = [
     "GeodesicSolver",
     "mesh_area",
@@ -156,8 +158,7 @@ def mesh_area(mesh: Any) -> float:
 
 
 def _area(V: np.ndarray, F: np.ndarray) -> float:
-    cross = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    return float(0.5 * np.linalg.norm(cross, axis=1).sum())
+    return float(face_areas(V, F).sum())
 
 
 # --------------------------------------------------------------------------------------------

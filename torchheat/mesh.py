@@ -57,12 +57,12 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .geometry import face_areas
 from .meshio import SUPPORTED_FORMATS, MeshError, MeshWarning, _plural, read_arrays
 from .topology import (
     adjacency_from_keys,
     components,
     edge_keys,
-    face_areas,
     orient_faces,
     restrict_faces,
 )

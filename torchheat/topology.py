@@ -339,28 +339,6 @@ def _simple_loops(loop: np.ndarray) -> list[np.ndarray]:
 FILLED_LEAST = 0.6
 
 
-def face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Area of every face of a triangle mesh (numpy only).
-
-    Parameters
-    ----------
-    V : numpy.ndarray of float, shape (n, 3)
-    F : numpy.ndarray of int, shape (m, 3)
-
-    Returns
-    -------
-    numpy.ndarray of float, shape (m,)
-
-    Examples
-    --------
-    >>> face_areas(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]])).tolist()
-    [0.5]
-    """
-    a = V[F[:, 0]]
-    cross = np.cross(V[F[:, 1]] - a, V[F[:, 2]] - a)
-    return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
-
-
 def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
                ) -> tuple[np.ndarray, np.ndarray]:
     """Close every boundary loop with a patch of triangles around a new vertex at its centroid.
