@@ -842,3 +842,26 @@ def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     half = float(np.mean(2 * np.abs(V[s.numpy()[24:], 1]) <= r))
     assert share({"g": mix}, V, r, s) == pytest.approx(0.5 + 0.5 * half)
     assert not tm.refine._is_identity({"g": refl}, V, r, s)
+
+
+def test_match_across_resolutions():
+    # a mesh against a moved copy of itself subdivided 1 -> 4 (same surface, 4x the
+    # vertices, other triangles): the time samples, features and maps must not depend on the
+    # resolution. Forward: the original vertices keep their place in the subdivided copy;
+    # backward: every vertex of the fine copy should land near its own position
+    from conftest import DATA
+
+    from torchheat import load_mesh
+
+    V, F = load_mesh(DATA / "spot.obj").numpy()
+    V2, F2 = trimesh.remesh.subdivide(V, F)
+    W, G, perm = moved_copy(V2, F2, seed=11)
+    coarse, fine = prepare(Mesh(V, F, name="spot")), prepare(Mesh(W, G, name="spot-fine"))
+    diag = Mesh(V, F).bbox_diagonal()
+    fwd = match(coarse, fine)
+    err = np.linalg.norm(W[fwd.map.numpy()] - W[perm[: len(V)]], axis=1) / diag
+    assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
+    assert not fwd.suspect
+    bwd = match(fine, coarse).map.numpy()  # fine vertex perm[i] sits at V2[i]
+    err = np.linalg.norm(V[bwd[perm]] - V2, axis=1) / diag
+    assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
