@@ -66,7 +66,7 @@ def test_match_round_trip(pair, matched, capsys):
     if sym.exists():  # a generic shape has a (poor) symmetric alternative, or none
         g = read_map(sym)
         assert g.shape == (len(inv),) and g.min() >= 0 and g.max() < len(inv)
-    assert not [p for p in os.listdir(d) if p.endswith(".tmp")]  # no temp files left
+    assert not [p for p in os.listdir(d) if p.startswith(".")]  # no temporary files left
 
 
 def test_symmetric_out_written(pair):
@@ -169,7 +169,7 @@ def test_bad_mesh_input(pair, tmp_path, capsys, case, role):
     assert bad.name in err
     assert "Traceback" not in err
     assert not out.exists()
-    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]  # no temporary files
 
 
 @pytest.mark.parametrize("case", ["missing", "nan", "degenerate"])
@@ -245,7 +245,7 @@ def test_color_transfer_png(tmp_path):
     path3 = color_transfer(mesh, mesh, f, tmp_path / "ct3.png", errors=err)
     assert path3.read_bytes()[:8] == PNG_MAGIC
     assert path3.stat().st_size > 10_000
-    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]  # no temporary files
 
 
 def test_color_transfer_rejects_bad_map(tmp_path):

@@ -315,7 +315,7 @@ def test_dataloader_with_two_workers(spot_files, tmp_path):
     assert all(s.data is not None and s.data["eigenvalues"].numel() == 6 for s in got)
     assert not np.allclose(got[0].data["eigenvalues"], got[1].data["eigenvalues"])
     assert len(list((tmp_path / "c").glob("*.npz"))) == 2
-    assert not any(p.name.endswith(".tmp") for p in (tmp_path / "c").iterdir())
+    assert not any(p.name.startswith(".") for p in (tmp_path / "c").iterdir())  # temporaries
 
 
 def test_folder_and_pairs_from_list(spot_files, tmp_path):

@@ -43,3 +43,21 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
         atomic_write(p, fail)
     assert p.read_text() == "old"
     assert [f.name for f in tmp_path.iterdir()] == ["out.npz"]
+
+
+def test_atomic_writes_publish_together_or_not_at_all(tmp_path, umask):
+    from torchheat._files import atomic_writes
+
+    a, b = tmp_path / "map.txt", tmp_path / "pic.png"
+    a.write_text("old map")
+    with pytest.raises(RuntimeError, match="no picture"), atomic_writes() as out:
+        out.stage(a, lambda t: t.write_text("new map"))
+        out.stage(b, lambda t: (_ for _ in ()).throw(RuntimeError("no picture")))
+    assert a.read_text() == "old map" and not b.exists()  # neither published
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["map.txt"]  # no temporaries
+    with atomic_writes() as out:
+        out.stage(a, lambda t: t.write_text("new map"))
+        out.stage(b, lambda t: t.write_bytes(b"png"))
+        assert a.read_text() == "old map" and not b.exists()  # staged, not yet published
+    assert a.read_text() == "new map" and b.read_bytes() == b"png"
+    assert stat.S_IMODE(b.stat().st_mode) == 0o644

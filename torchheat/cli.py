@@ -30,14 +30,13 @@ import argparse
 import contextlib
 import os
 import sys
-import tempfile
 import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ._files import file_mode
+from ._files import atomic_writes
 from .meshio import FORMATS_HELP
 
 __all__ = ["main", "run", "build_parser", "write_map", "CLIError"]
@@ -86,48 +85,6 @@ def _check_output(path: Path, what: str = "output") -> Path:
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CLIError(f"{path}: cannot write {what}: directory {parent} is not writable")
     return path
-
-
-class _Outputs:
-    """Collects output files as temporary files and publishes them together.
-
-    ``stage(path, writer)`` calls ``writer(tmp_path)`` on a temporary file next to ``path``;
-    ``commit()`` renames every staged file into place; temporary files of an unfinished
-    transaction are removed.
-    """
-
-    def __init__(self) -> None:
-        self._staged: list[tuple[str, Path]] = []
-
-    def stage(self, path: Path, writer: Callable[[str], Any]) -> None:
-        parent = path.parent if str(path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.close(fd)
-        self._staged.append((tmp, path))
-        writer(tmp)
-
-    def commit(self) -> None:
-        mode = file_mode()
-        for tmp, path in self._staged:
-            os.chmod(tmp, mode)
-            os.replace(tmp, path)
-        self._staged = []
-
-    def discard(self) -> None:
-        for tmp, _ in self._staged:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        self._staged = []
-
-
-@contextlib.contextmanager
-def _outputs() -> Iterator[_Outputs]:
-    out = _Outputs()
-    try:
-        yield out
-        out.commit()
-    finally:
-        out.discard()
 
 
 def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
@@ -452,7 +409,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
         print(f"{PROG}: warning: the choice had no rival (a different whole map; only the "
               f"default method with ZoomOut has them); {rival_out} is not written",
               file=sys.stderr)
-    with _outputs() as outs:
+    with atomic_writes() as outs:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
@@ -503,7 +460,7 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
     if not corr.has_symmetric_map:
         print(f"{PROG}: warning: no orientation-reversing self-map was found; the written "
               "map is the best direct self-map (close to the identity)", file=sys.stderr)
-    with _outputs() as outs:
+    with atomic_writes() as outs:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the file's numbering
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
@@ -572,7 +529,7 @@ def _cmd_demo_partial(args: argparse.Namespace) -> int:
     diag = target.bbox_diagonal()
     dist = np.linalg.norm(W[f] - W[truth], axis=1) / diag
     within = float(np.mean(dist <= 0.02))
-    with _outputs() as outs:
+    with atomic_writes() as outs:
         outs.stage(map_path, lambda p: write_map(p, f))
         from .viz import color_transfer
 
@@ -633,7 +590,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             sym_note += ("\nnote: the symmetric alternative is closer to the ground truth than "
                          "the direct map, i.e. the direct map is the left/right mirror; "
                          "intrinsic descriptors cannot tell a map from its mirror image")
-    with _outputs() as outs:
+    with atomic_writes() as outs:
         outs.stage(map_path, lambda p: write_map(p, f))
         from .viz import color_transfer
 
