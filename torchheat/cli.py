@@ -141,20 +141,22 @@ def _largest_piece(V: Any, F: Any) -> Any:
 
 
 def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
-    """The first mesh (a piece) with its holes closed (:func:`torchheat.topology.fill_holes`)
-    when the filled way of a partial match will want it — it has holes, and closed it covers
-    at least :data:`torchheat.topology.FILLED_LEAST` of the second mesh's area — else None.
-    Numpy only (it runs before torch is imported)."""
+    """The first mesh (a piece) with its holes closed (:func:`torchheat.topology.fill_holes`,
+    its faces first oriented as :class:`torchheat.Mesh` orients them) when the filled way of a
+    partial match will want it — it has holes, and closed it covers at least
+    :data:`torchheat.topology.FILLED_LEAST` of the second mesh's area — else None. Numpy only
+    (it runs before torch is imported)."""
     import numpy as np
 
     from .geometry import face_areas
-    from .topology import FILLED_LEAST, fill_holes
+    from .topology import FILLED_LEAST, fill_holes, orient_faces
 
     (V, F), (Vt, Ft) = solved[0], solved[1]
     if not (_plausible(V, F) and _plausible(Vt, Ft)):
         return None
     V, F = np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64)
     try:
+        F = orient_faces(F, len(V))[0]  # as Mesh turns them (SHREC'16's david and michael)
         V2, F2 = fill_holes(V, F)
     except Exception:  # noqa: BLE001 - the match itself reports what is wrong with the piece
         return None
