@@ -865,3 +865,21 @@ def test_match_across_resolutions():
     bwd = match(fine, coarse).map.numpy()  # fine vertex perm[i] sits at V2[i]
     err = np.linalg.norm(V[bwd[perm]] - V2, axis=1) / diag
     assert np.mean(err < 0.02) > 0.9, np.mean(err < 0.02)
+
+
+def test_match_leaves_the_callers_target_alone(asym_pair):
+    # the target's times are re-planned to the source's on a private copy: the caller's
+    # prepared target keeps its own, and a map computed lazily after another source was
+    # matched into the same target is the map of its own match (before, zoomout=False maps
+    # read the other source's times: 94 % of a TOSCA cat map changed)
+    S, T, perm = asym_pair
+    V, F = generic_sphere(3, seed=3, noise=0.12)  # another shape: other adaptive times
+    other = prepare(Mesh(V, F))
+    assert not torch.equal(other.hk.times, T.hk.times)
+    own = T.hk.times.clone()
+    fresh = match(S, T, zoomout=False).map
+    first = match(S, T, zoomout=False)  # its dense map not computed yet
+    match(other, T, zoomout=False).map  # noqa: B018
+    assert torch.equal(T.hk.times, own)
+    assert torch.equal(first.map, fresh)
+    assert exact(first.map, perm) == 1.0

@@ -374,6 +374,12 @@ def match(
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
+        if tgt is not src:
+            # its times are re-planned to the source's below: on a private copy (eigenbasis
+            # and caches shared), never on the caller's shape, whose next match would re-plan
+            # the times a lazy map of this one still reads (zoomout=False: 94 % of a TOSCA
+            # map changed when read after another source was matched into the same target)
+            tgt = _role_copy(tgt)
         part = None
         if partial and partial_scale == "unit":
             # matched as a whole shape (both unit-area); only the quality reads it as a piece
