@@ -85,8 +85,9 @@ class PreparedShape:
         change).
     own_times : torch.Tensor, shape (J,), optional
         The times the shape was prepared with. :func:`match` gives a target its source's
-        times; the target's self-symmetry (the mirror hypothesis) is computed at these own
-        times instead, once per prepared target, whatever the source.
+        times (on a private copy: the caller's shape is never re-planned); the target's
+        self-symmetry (the mirror hypothesis) is computed at these own times instead, once
+        per prepared target, whatever the source.
     """
 
     mesh: Mesh
