@@ -386,9 +386,9 @@ def _prepared(shape: Any, role: str, match_opts: Mapping[str, Any],
     key = (_shape_key(shape), json.dumps(kw, sort_keys=True, default=str))
 
     def make() -> Any:
-        # one eigensolve per shape: the role's copy has its own HeatKernel (a target's times
-        # are re-planned to its source's) and shares the caches that do not depend on them
-        # (self-symmetries, functional-map operators: a shape in both roles pays once)
+        # one eigensolve per shape: each role gets a copy (its own timings) sharing the
+        # caches that do not depend on the times (self-symmetries, functional-map operators:
+        # a shape in both roles pays once); match re-times a target on its own private copy
         from .matching.prepared import _role_copy
 
         return _role_copy(_BASES.get_or(key, make_base))

@@ -26,7 +26,7 @@ from ..heat import threads
 from ..mesh import Mesh, MeshError
 from ..topology import FILLED_LEAST, fill_holes
 from .partial import _agreement, _boundary_distance, area_ratio, dense_partial_map
-from .prepared import PreparedShape, _as_prepared, _fps, _role_copy
+from .prepared import PreparedShape, _as_prepared, _fps
 from .quality import MapQuality, map_quality
 from .result import Correspondence, _numbering
 from .select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear_choice
@@ -67,7 +67,7 @@ def _partial_auto(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
         if scale == "filled" and (closed is None or too_small):
             continue
         try:
-            corr = match_fn(src, _role_copy(tgt), **{**kw, "partial_scale": scale})
+            corr = match_fn(src, tgt, **{**kw, "partial_scale": scale})  # re-times a copy
         except MeshError as err:
             if scale != "filled":
                 raise
@@ -321,8 +321,8 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     # david_10 97 -> 13 %), whose patches are not part of the whole's surface; no staged
     # search: its gate was set on whole shapes, and on closed pieces it kept wrong first-stage
     # choices (cuts 81.9 -> 81.4 %, dog_10 100 -> 63 %; holes 82.0 -> 81.6 %; twelfth session)
-    full = match_fn(fsrc, _role_copy(tgt), **{**kw, "partial": False, "trimmed_twins": False,
-                                              "staged": False})
+    full = match_fn(fsrc, tgt, **{**kw, "partial": False, "trimmed_twins": False,
+                                   "staged": False})
     n = src.n
     info = full.info
     if info.get("p") is not None and info["p"] >= n:

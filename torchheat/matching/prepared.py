@@ -142,10 +142,10 @@ def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:
 
 
 def _role_copy(shape: PreparedShape) -> PreparedShape:
-    """A copy whose heat kernel times can be changed (a target's are re-planned to its
-    source's); the eigenbasis and the :class:`ShapeCaches` (farthest-point samples,
-    self-symmetries, functional-map operators, filled mesh) are shared: computed once per
-    shape, whichever copy asks first."""
+    """A copy whose heat kernel times can be changed (:func:`match` re-plans a target's to
+    its source's on such a copy, never on the caller's shape); the eigenbasis and the
+    :class:`ShapeCaches` (farthest-point samples, self-symmetries, functional-map operators,
+    filled mesh) are shared: computed once per shape, whichever copy asks first."""
     return dataclasses.replace(shape, hk=copy.copy(shape.hk), timings=dict(shape.timings))
 
 
