@@ -440,6 +440,34 @@ def test_point_cloud_stderr_is_the_error_alone(tmp_path):
     assert "arning" not in res.stderr and "int64" not in res.stderr
 
 
+def test_cli_prints_each_warning_once(tmp_path, monkeypatch, capsys):
+    # a warning repeated by later loads (a batch reads one target file for each of its pairs)
+    # is printed once per command, and again by the next command
+    import warnings
+
+    import torchheat.meshio
+    from torchheat.mesh import MeshWarning
+
+    read = torchheat.meshio.read_arrays
+
+    def noisy(path):
+        for _ in range(3):  # as three loads of one file would
+            warnings.warn("shared.off: 12 non-manifold edges", MeshWarning, stacklevel=1)
+        return read(path)
+
+    monkeypatch.setattr(torchheat.meshio, "read_arrays", noisy)
+    cloud = tmp_path / "cloud.obj"
+    cloud.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    for _ in range(2):
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            rc = main(["match", str(cloud), str(cloud), "-o", str(tmp_path / "m.txt")])
+        assert rc == 1
+        lines = capsys.readouterr().err.splitlines()
+        assert lines[0] == "torchheat: warning: shared.off: 12 non-manifold edges"
+        assert len(lines) == 2 and lines[1].startswith(f"torchheat: error: {cloud}: file has no")
+
+
 def test_cli_prints_own_warnings_only(tmp_path, monkeypatch, capsys):
     # main() prints torchheat's warnings (one line each) and drops the libraries' ones
     import warnings

@@ -489,7 +489,7 @@ def test_barycentric_errors_interpolate_the_distance_field():
     s = GeodesicSolver(mesh)
     want = np.array([sum(w[i, j] * s.distances([F[tri[i], j]])[0][pred[i]] for j in range(3))
                      for i in range(40)]) / math.sqrt(s.area)
-    np.testing.assert_allclose(got, want, rtol=1e-12)
+    np.testing.assert_allclose(got, want, rtol=1e-7)  # the batch's fields are float32
     # on a flat grid the interpolated field is close to the true distance to the point
     P = (w[:, :, None] * V[F[tri]]).sum(1)
     euclid = np.linalg.norm(P - V[pred], axis=1) / math.sqrt(s.area)

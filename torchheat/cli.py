@@ -857,9 +857,14 @@ def _own(category: type[Warning]) -> bool:
     return category.__module__.split(".")[0] == "torchheat"
 
 
+#: Warning texts printed by this process since :func:`main` started (each is printed once).
+_SHOWN: set[str] = set()
+
+
 def _showwarning(message, category, filename, lineno, file=None, line=None, *,
                  own_only: bool = False) -> None:
-    """One line ``torchheat: warning: ...``; with ``own_only``, torchheat's warnings only.
+    """One line ``torchheat: warning: ...``, once per text; with ``own_only``, torchheat's
+    warnings only.
 
     Library warnings (numpy, scipy, torch: ``FutureWarning`` about dtypes, torch's sparse
     "beta" notice, ...) say nothing a command-line user can act on. The eigensolve workers
@@ -868,6 +873,9 @@ def _showwarning(message, category, filename, lineno, file=None, line=None, *,
     if own_only and not _own(category):
         return
     text = _one_line(str(message))
+    if text in _SHOWN:  # e.g. a batch loads one target file for each of its pairs
+        return
+    _SHOWN.add(text)
     print(f"{PROG}: warning: {text}", file=sys.stderr if file is None else file)
 
 
@@ -895,6 +903,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     1
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    _SHOWN.clear()
     with warnings.catch_warnings():
         try:
             if argv and argv[0] in _BATCH:  # torchheat.batch words its own warnings
