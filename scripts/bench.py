@@ -227,7 +227,7 @@ def bench_match(args) -> None:
         rows.append(("prepare both (operators, eigenbasis k=100, HKS, features)",
                      f"{t_prep:.3f}"))
         p = int(ps.features[0])
-        pt.hk.set_times(ps.hk.times)
+        pt.hk = pt.hk.with_times(ps.hk.times)
         for eng in ("kdtree", "cdist"):
             t0 = time.perf_counter()
             sc = landmark_scores(ps, pt, p, pt.features, engine=eng)

@@ -67,6 +67,27 @@ def test_columns_match_dense_expm_at_every_time(small_mesh, method, rtol):
         assert hk.plan["spectral"].any() and not hk.plan["spectral"].all()
 
 
+def test_with_times_is_a_new_solver_on_the_same_eigenbasis(small_mesh):
+    hk = HeatKernel(small_mesh, rtol=1e-8, k=20)
+    t0 = hk.times.clone()
+    plan0 = hk.plan
+    src, times = [0, 41, 97], [0.003, 0.05, 0.7]
+    hk2 = hk.with_times(times)
+    assert torch.equal(hk.times, t0) and np.array_equal(hk.plan["degree"], plan0["degree"])
+    assert hk2.times.tolist() == times and np.shares_memory(hk2._phi_red, hk._phi_red)
+    assert hk2.plan["timings"] == plan0["timings"]  # the set-up it shares
+    # columns at the new times against dense expm, and the old solver still at its own
+    err = rel_errors(hk2.columns(src), dense_columns(hk.laplacian, src, times))
+    assert err.max() <= 1e-8
+    err0 = rel_errors(hk.columns(src), dense_columns(hk.laplacian, src, t0.numpy()))
+    assert err0.max() <= 1e-8
+    with pytest.raises(ValueError, match="positive"):
+        hk.with_times([0.1, -1.0])
+    with pytest.warns(DeprecationWarning, match="with_times"):
+        hk.set_times(times)  # deprecated: in place
+    assert hk.times.tolist() == times
+
+
 def test_truncated_spectrum_alone_is_wrong_at_small_t(small_mesh):
     hk = HeatKernel(small_mesh, method="spectral", k=20)
     src = [3, 50]

@@ -20,7 +20,7 @@ def pair():
     rng = np.random.default_rng(4)
     W = V * (1.0 + 0.01 * rng.standard_normal((len(V), 1)))  # near-isometric, same order
     S, T = prepare(Mesh(V, F)), prepare(Mesh(W, F))
-    T.hk.set_times(S.hk.times)
+    T.hk = T.hk.with_times(S.hk.times)
     return S, T
 
 

@@ -221,7 +221,7 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
     mp = mirror_permutation(V)
     W, G, perm = moved_copy(V, F, seed=5)
     S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
-    T.hk.set_times(S.hk.times)
+    T.hk = T.hk.with_times(S.hk.times)
     samples = _fps(S, 48)
     swap = torch.as_tensor(perm[mp])  # source x -> copy of its mirror image
     pool = [{"lms0": [], "g": swap[samples], "energy": 1.0, "orientation": -1.0}]

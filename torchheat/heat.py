@@ -32,8 +32,10 @@ error at most ``eta / (sqrt(a_min a_p) ||c_hat|| - eta)`` where ``c_hat`` is the
 
 from __future__ import annotations
 
+import copy
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -532,12 +534,22 @@ class HeatKernel:
             degree[j] = chebyshev_degree(c, 0.5 * self.rtol / fac[j])
         return _Plan(spectral, degree)
 
-    def set_times(self, times: Sequence[float] | torch.Tensor) -> None:
-        """Change the time samples (re-plans; keeps the eigenbasis and ``lambda_max``).
+    def with_times(self, times: Sequence[float] | torch.Tensor) -> HeatKernel:
+        """A solver for other time samples that shares this one's eigenbasis and operator.
+
+        Nothing is recomputed but the plan (which times take the spectral path, Chebyshev
+        degrees: microseconds); this solver is left as it is, so a shape prepared once can be
+        matched at the times of many sources.
 
         Parameters
         ----------
         times : sequence of float, shape (J,)
+            Positive time samples.
+
+        Returns
+        -------
+        HeatKernel
+            A new solver; its eigenpairs, operators and caches are this one's (not copied).
 
         Examples
         --------
@@ -545,14 +557,37 @@ class HeatKernel:
         >>> from torchheat import Mesh
         >>> s = trimesh.creation.icosphere(2)
         >>> hk = HeatKernel(Mesh(s.vertices, s.faces))
-        >>> hk.set_times([0.1, 0.2]); hk.times.numel()
-        2
+        >>> hk2 = hk.with_times([0.1, 0.2])
+        >>> hk2.times.numel(), hk.times.numel()
+        (2, 10)
         """
+        new = copy.copy(self)
+        new._retime(times)
+        return new
+
+    def set_times(self, times: Sequence[float] | torch.Tensor) -> None:
+        """Change the time samples of this solver in place (deprecated: use :meth:`with_times`).
+
+        Every holder of the solver (e.g. a prepared shape shared between matches) sees the new
+        times; :meth:`with_times` returns a new solver instead and leaves this one alone.
+
+        Parameters
+        ----------
+        times : sequence of float, shape (J,)
+        """
+        warnings.warn("HeatKernel.set_times changes a solver others may hold; use "
+                      "hk = hk.with_times(times)", DeprecationWarning, stacklevel=2)
+        self._retime(times)
+
+    def _retime(self, times: Sequence[float] | torch.Tensor) -> None:
         t = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
         if t.numel() == 0 or bool((t <= 0).any()):
             raise ValueError("times must be a non-empty list of positive numbers")
         self.times = t
+        setup = self._plan.timings  # the eigenbasis and lambda_max are the same
         self._plan = self._make_plan()
+        self._plan.timings.update(setup)
+        self.error_bound = None  # bounds of the last columns() call at the old times
 
     def adaptive_times(self, n: int = 10, decay: float = 4 * math.log(10)) -> torch.Tensor:
         """Time samples adapted to the spectrum: ``decay / lambda_k ... decay / lambda_1``.

@@ -234,16 +234,18 @@ def partial_times(src: PreparedShape, setup: _PartialSetup, n_times: int | None 
     return torch.logspace(math.log10(t_lo), math.log10(t_hi), J, dtype=torch.float64)
 
 
-def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepest"
-                   ) -> PreparedShape:
+def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepest",
+                   times: torch.Tensor | None = None) -> PreparedShape:
     """A copy of the source whose feature points and farthest-point samples are interior.
 
     The pipeline draws every landmark and sample from ``shape.features`` and :func:`_fps`;
     pre-filling the copy's sample cache with an interior farthest-point order makes all of
-    them avoid the cut (the copy shares the heat kernel; the caller's shape is untouched).
+    them avoid the cut (the copy's heat kernel shares the eigenbasis, at ``times`` if given;
+    the caller's shape is untouched).
     """
     # own times, shared eigenbasis; its own caches (its samples are the interior's only)
-    view = dataclasses.replace(src, hk=copy.copy(src.hk), caches=ShapeCaches())
+    hk = copy.copy(src.hk) if times is None else src.hk.with_times(times)
+    view = dataclasses.replace(src, hk=hk, caches=ShapeCaches())
     feats = src.features.numpy()
     keep = feats[setup.interior[feats]]
     if order == "deepest":

@@ -374,12 +374,6 @@ def match(
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
-        if tgt is not src:
-            # its times are re-planned to the source's below: on a private copy (eigenbasis
-            # and caches shared), never on the caller's shape, whose next match would re-plan
-            # the times a lazy map of this one still reads (zoomout=False: 94 % of a TOSCA
-            # map changed when read after another source was matched into the same target)
-            tgt = _role_copy(tgt)
         part = None
         if partial and partial_scale == "unit":
             # matched as a whole shape (both unit-area); only the quality reads it as a piece
@@ -394,12 +388,15 @@ def match(
             # one scale: the unit-area piece at t / r has the descriptors of the piece at the
             # whole's scale at t (t k_t is scale-invariant), see matching.partial
             t_whole = partial_times(src, part)
-            src = _interior_view(src, part, partial_landmarks)
-            src.hk.set_times(t_whole / part.ratio)
-            tgt.hk.set_times(t_whole)
-        elif not (tgt.hk.times.shape == src.hk.times.shape
-                  and torch.equal(tgt.hk.times, src.hk.times)):
-            tgt.hk.set_times(src.hk.times)  # descriptors must share the time samples
+            src = _interior_view(src, part, partial_landmarks, times=t_whole / part.ratio)
+            tgt = _role_copy(tgt, t_whole)
+        elif tgt is not src:
+            # descriptors must share the time samples: the target is planned at the source's
+            # on a private copy (eigenbasis and caches shared), never on the caller's shape,
+            # whose solver a lazy map of an earlier match may still read
+            same = (tgt.hk.times.shape == src.hk.times.shape
+                    and torch.equal(tgt.hk.times, src.hk.times))
+            tgt = _role_copy(tgt, None if same else src.hk.times)
         timings["prepare"] = time.perf_counter() - t_start
         if (background and method == "refine" and mirror_hypothesis and tgt is not src
                 and not _self_symmetry_cached(tgt, refine_log_floor)):
@@ -846,8 +843,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
         return cache[key]
     view = shape
     if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
-        view = _role_copy(shape)  # own solver at its own times, the shape's caches
-        view.hk.set_times(own)
+        view = _role_copy(shape, own)  # own solver at its own times, the shape's caches
     corr = match(view, view, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS, fixed_weight=SYMMETRY_FIXED_WEIGHT)

@@ -141,12 +141,14 @@ def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:
     return memo[key]
 
 
-def _role_copy(shape: PreparedShape) -> PreparedShape:
-    """A copy whose heat kernel times can be changed (:func:`match` re-plans a target's to
-    its source's on such a copy, never on the caller's shape); the eigenbasis and the
+def _role_copy(shape: PreparedShape, times: torch.Tensor | None = None) -> PreparedShape:
+    """A copy of the shape with its own heat-kernel solver, at ``times`` if given
+    (:meth:`~torchheat.heat.HeatKernel.with_times`: :func:`match` plans a target at its
+    source's times on such a copy) and its own timings; the eigenbasis and the
     :class:`ShapeCaches` (farthest-point samples, self-symmetries, functional-map operators,
     filled mesh) are shared: computed once per shape, whichever copy asks first."""
-    return dataclasses.replace(shape, hk=copy.copy(shape.hk), timings=dict(shape.timings))
+    hk = copy.copy(shape.hk) if times is None else shape.hk.with_times(times)
+    return dataclasses.replace(shape, hk=hk, timings=dict(shape.timings))
 
 
 def _vertex_normals(mesh: Mesh) -> np.ndarray:
@@ -285,7 +287,7 @@ def prepare(
                         num_threads=num_threads, method="spectral" if adaptive else "auto",
                         eigenpairs=eigenpairs)
         if adaptive:
-            hk.set_times(hk.adaptive_times())
+            hk = hk.with_times(hk.adaptive_times())
     t1 = time.perf_counter()
     lam = hk.eigenvalues.numpy()
     phi = hk.eigenvectors.numpy()
@@ -313,7 +315,7 @@ def _cached_heat_kernel(shape: CachedShape, times: Any, k: int | None, rtol: flo
                if v is not None})
     hk = shape.heat_kernel(**kw)
     if adaptive:
-        hk.set_times(hk.adaptive_times())
+        hk = hk.with_times(hk.adaptive_times())
     return hk
 
 
