@@ -44,11 +44,11 @@ Design
 * **Process-local memo caches** (results do not depend on them, only the speed): the prepared
   source and target shapes (:func:`torchheat.prepare`, LRU of 16 each) and, per target shape,
   the geodesic solver with its distance fields (LRU of 8 targets, float32 fields up to
-  ``$TORCHHEAT_FIELD_CACHE_MB`` = 512 MB per process: every field of a 13k-vertex target).
+  ``$TORCHHEAT_FIELD_CACHE_MB`` = 512 MB per process: every field of an 11k-vertex target).
   Pending pairs are scheduled grouped by target so consecutive pairs reuse the target's
-  fields, and with ``workers > 1`` the pairs
-  of one target run on one worker (:class:`_AffinityPool`): a target is prepared, its
-  self-symmetry found and its geodesic fields computed once per run, not once per worker.
+  fields, and with ``workers > 1`` the pairs of one target run on one worker
+  (:class:`_AffinityPool`): a target is prepared, its self-symmetry found and its geodesic
+  fields computed once per run, not once per worker.
 
 Evaluation cost (TOSCA 5k, 2 busy cores, heat-method geodesics at ~1.9 ms per source)
 ------------------------------------------------------------------------------------

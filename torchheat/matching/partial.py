@@ -40,7 +40,6 @@ descriptors are closest — meaningless there; this module is for ``part -> full
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -61,7 +60,7 @@ from .fmap import (
     wave_kernel_signature,
 )
 from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
-from .prepared import PreparedShape, ShapeCaches, _fps
+from .prepared import PreparedShape, ShapeCaches, _fps, _role_copy
 from .refine import _refine_factors
 from .zoomout import ZoomOutResult, _sizes, lstsq
 
@@ -244,8 +243,7 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepe
     the caller's shape is untouched).
     """
     # own times, shared eigenbasis; its own caches (its samples are the interior's only)
-    hk = copy.copy(src.hk) if times is None else src.hk.with_times(times)
-    view = dataclasses.replace(src, hk=hk, caches=ShapeCaches())
+    view = dataclasses.replace(_role_copy(src, times), caches=ShapeCaches())
     feats = src.features.numpy()
     keep = feats[setup.interior[feats]]
     if order == "deepest":
