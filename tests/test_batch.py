@@ -68,7 +68,7 @@ def test_run_writes_lines_and_summary_and_rerun_does_nothing(reference, monkeypa
     assert r["time_match"] > 0 and r["time_eval"] > 0 and r["landmark"] is not None
 
     calls = []
-    monkeypatch.setattr(batch, "evaluate_pair", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr(batch.task, "evaluate_pair", lambda *a, **k: calls.append(a))
     before = (out / "results.jsonl").read_bytes()
     again = batch.run(cfg, progress=False)
     assert calls == [] and (out / "results.jsonl").read_bytes() == before

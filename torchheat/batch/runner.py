@@ -1,0 +1,401 @@
+""":func:`run`: the pending pairs of a config mapped over an executor (in-process, a process
+pool with target affinity, or Dask with one task per shape), records appended as they finish;
+:func:`preprocess` fills a collection's disk cache.
+"""
+
+from __future__ import annotations
+
+import builtins
+import concurrent.futures as cf
+import contextlib
+import os
+import sys
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._files import atomic_write
+from .caches import _DATASETS, _dataset_key, _load_dataset, _preprocess_of
+from .config import Executor, load_config, options_hash
+from .report import summarize_run
+from .results import RESULTS, _append_lines, _lock, _write_text, load_results
+from .task import (
+    PairTask,
+    ShapeTask,
+    _dask_pair,
+    _error_record,
+    _freeze,
+    _last_line,
+    _probe_worker,
+    _run_shape,
+    _run_task,
+    _worker_init,
+)
+
+
+# --------------------------------------------------------------------------------------------
+# run
+# --------------------------------------------------------------------------------------------
+def _in_completion_order(executor: Any, fn: Callable, tasks: list) -> Iterator[dict]:
+    if executor is None:
+        yield from builtins.map(fn, tasks)
+    elif isinstance(executor, cf.Executor):
+        futures = [executor.submit(fn, t) for t in tasks]
+        try:
+            for fut in cf.as_completed(futures):
+                yield fut.result()
+        finally:
+            for fut in futures:
+                fut.cancel()
+    else:
+        yield from executor.map(fn, tasks)
+
+
+class _AffinityPool:
+    """``workers`` one-process pools that run the pairs of one target on the same worker.
+
+    A worker prepares a target once, with everything the matcher caches on it (the
+    target's self-symmetry behind the mirror hypothesis: a whole self-match) and the
+    geodesic fields of its evaluation; a shared pool hands consecutive pairs of a target to
+    alternating workers, each paying those costs. A free worker takes the next pair of its
+    own target, else the next target nobody has started, else a pair of the target with
+    the most pairs left (so no worker idles while pairs remain). One pair per worker is in
+    flight; records come in completion order. Results do not depend on the scheduling.
+    """
+
+    def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
+        self.pools = [cf.ProcessPoolExecutor(max_workers=1, initializer=initializer)
+                      for _ in range(int(workers))]
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        for pool in self.pools:
+            pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def run(self, fn: Callable, tasks: Sequence, key: Callable[[Any], str]) -> Iterator[Any]:
+        """``fn(task)`` of every task (``key``: its target), in completion order."""
+        groups: OrderedDict[str, list] = OrderedDict()
+        for t in tasks:
+            groups.setdefault(key(t), []).append(t)
+        started: set[str] = set()
+        own: list[str | None] = [None] * len(self.pools)
+
+        def take(w: int) -> Any:
+            g = own[w]
+            if g is None or not groups.get(g):
+                fresh = [k for k, v in groups.items() if v and k not in started]
+                busy = [k for k, v in groups.items() if v]
+                if not busy:
+                    return None
+                g = fresh[0] if fresh else max(busy, key=lambda k: len(groups[k]))
+                own[w] = g
+                started.add(g)
+            return groups[g].pop(0)
+
+        running: dict[cf.Future, int] = {}
+        try:
+            for w, pool in enumerate(self.pools):
+                t = take(w)
+                if t is not None:
+                    running[pool.submit(fn, t)] = w
+            while running:
+                done, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
+                for fut in done:
+                    w = running.pop(fut)
+                    t = take(w)
+                    if t is not None:
+                        running[self.pools[w].submit(fn, t)] = w
+                    yield fut.result()
+        finally:
+            for fut in running:
+                fut.cancel()
+
+
+def _as_dask(executor: Any) -> Any:
+    """The :class:`~torchheat.executors.DaskExecutor` of ``executor`` (one, or a
+    ``distributed.Client`` wrapped), else None."""
+    if executor is None:
+        return None
+    from ..executors import DaskExecutor
+
+    if isinstance(executor, DaskExecutor):
+        return executor
+    cls = type(executor)
+    if cls.__module__.split(".")[0] == "distributed" and cls.__name__ == "Client":
+        return DaskExecutor(executor)
+    return None
+
+
+def _dask_batches(ex: Any, cfg: Mapping[str, Any], todo: list[PairTask]) -> Iterator[list]:
+    """Records of ``todo`` on Dask, in batches of those that finished together.
+
+    For ``task: match`` each shape is preprocessed by a :class:`ShapeTask` of its own, once
+    per run, and every pair task depends on its two shapes' tasks: an all-pairs run does one
+    eigensolve per shape (plus one per shape recomputed after its worker died). The
+    eigenbases reach the pair tasks through the disk cache when the config has one (entries
+    written by the shape tasks, read by the pair tasks: the folder must be shared), else
+    through Dask's own data transfers (nothing written; held by the workers until the last
+    pair of the shape is done)."""
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    with_shapes = cfg["task"] == "match"
+    shared: dict[int, ShapeTask] = {}
+
+    def needs(t: PairTask) -> tuple[int, ...]:
+        return tuple(dict.fromkeys(pc.pairs[t.index])) if with_shapes else ()
+
+    for t in todo:
+        for i in needs(t):
+            shared.setdefault(i, ShapeTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i,
+                                           pc.shapes.names[i], _freeze(cfg["prepare"]),
+                                           cfg.get("cache")))
+
+    def name(x: Any) -> str:
+        return f"pair-{x.name}" if isinstance(x, PairTask) else f"shape-{shared[x].name}"
+
+    for batch in ex.map_shared(_dask_pair, todo, needs, _run_shape, shared, name=name):
+        yield [rec if exc is None else _error_record(task, exc) for task, rec, exc in batch]
+
+
+def _preflight(ex: Any, cfg: Mapping[str, Any]) -> None:
+    """Every worker can import torchheat and see the data (and the cache folder), or a clear
+    error before any task runs; a warning for workers with several threads."""
+    from ..executors import ExecutorError
+
+    args = dict(cfg["dataset_args"])
+    replies = ex.client.run(_probe_worker, cfg["dataset"], args, cfg.get("cache"),
+                            on_error="return")
+    bad = []
+    for worker, reply in sorted(replies.items()):
+        if isinstance(reply, BaseException):
+            bad.append(f"{worker}: cannot run torchheat there ({_last_line(reply)}); install "
+                       "torchheat (the same version) on every worker")
+        elif reply is not None:
+            bad.append(f"{worker} ({reply})")
+    if bad:
+        raise ExecutorError(f"{len(bad)} of {len(replies)} Dask workers cannot take part: "
+                            + "; ".join(bad[:3]) + (" ..." if len(bad) > 3 else "")
+                            + ". The dataset (and cache) folders must be visible on every "
+                            "worker at the configured path or at its $TORCHHEAT_DATA")
+    warning = ex.check_threads()
+    if warning:
+        warnings.warn(warning, stacklevel=3)
+
+
+def _tasks(cfg: Mapping[str, Any]) -> list[PairTask]:
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    names = pc.names
+    n = len(names) if cfg["limit"] is None else min(len(names), int(cfg["limit"]))
+    h = options_hash(cfg)
+    return [
+        PairTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i, names[i], f"{names[i]}#{h}",
+                 h, cfg["task"], _freeze(cfg["match"]), _freeze(cfg["prepare"]),
+                 cfg["eval_points"], bool(cfg["distortion"]), i < int(cfg["pictures"]),
+                 cfg.get("cache"))
+        for i in range(n)
+    ]
+
+
+def _target_of(task: PairTask) -> str:
+    pc = _DATASETS.get(_dataset_key(task.dataset, dict(task.dataset_args), task.cache,
+                                    dict(task.prepare)))
+    if pc is None:
+        return task.name
+    return pc.shapes.names[pc.pairs[task.index][1]]
+
+
+def run(
+    config: str | os.PathLike | Mapping[str, Any],
+    workers: int = 1,
+    executor: Executor | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Evaluate every pair of a config, appending to ``<output>/results.jsonl``; resumable.
+
+    Parameters
+    ----------
+    config : path-like or mapping
+        See :func:`load_config` (a mapping may override e.g. ``output`` or ``limit``).
+    workers : int
+        ``> 1``: that many local worker processes (one torch thread each; the pairs of one
+        target run on the same worker, see :class:`_AffinityPool`). Ignored when
+        ``executor`` is given.
+    executor : object with ``map(fn, iterable)``, optional
+        Any executor; a :class:`concurrent.futures.Executor` is driven through ``submit`` so
+        records are written as they finish. A :class:`torchheat.executors.DaskExecutor` (or a
+        ``distributed.Client``) runs one task per shape and one per pair (see
+        :func:`_dask_batches`). Default: the config's ``executor`` (``{dask: ADDRESS}``: a
+        DaskExecutor made and closed here, ``{workers: N}``), else in-process.
+    progress : bool
+        tqdm progress bar on stderr.
+
+    Returns
+    -------
+    list of dict
+        The records of this config's pairs (dataset order), old and new; failed pairs are
+        reported on stderr and left out (a re-run retries them).
+
+    Notes
+    -----
+    Whatever the executor, the records are written by this process only, one line per pair
+    (a pair delivered twice is written once), and a killed run resumes where it stopped.
+
+    Examples
+    --------
+    >>> results = run("configs/smoke.yaml", progress=False)  # doctest: +SKIP
+    >>> len(results)  # doctest: +SKIP
+    3
+    >>> results = run({**load_config("configs/smoke.yaml"),  # doctest: +SKIP
+    ...                "executor": {"dask": "local:2"}})
+    """
+    from tqdm import tqdm
+
+    cfg = load_config(config)
+    out = Path(cfg["output"])
+    out.mkdir(parents=True, exist_ok=True)
+    failed: list[dict[str, Any]] = []
+    with _lock(out), contextlib.ExitStack() as owned:
+        import yaml
+
+        _write_text(out / "config.yaml", yaml.safe_dump(cfg, sort_keys=False))
+        tasks = _tasks(cfg)
+        path = out / RESULTS
+        by_key = {r["key"]: r for r in load_results(path)}
+        todo = [t for t in tasks if t.key not in by_key]
+        todo.sort(key=_target_of)  # stable: consecutive pairs share the target's fields
+        dask_ex = _as_dask(executor)
+        if executor is None and todo:
+            if "dask" in cfg["executor"]:
+                from ..executors import DaskExecutor
+
+                dask_ex = owned.enter_context(DaskExecutor(cfg["executor"]["dask"]))
+            elif workers <= 1:
+                workers = int(cfg["executor"].get("workers", workers))
+        if dask_ex is not None:
+            if todo:
+                _preflight(dask_ex, cfg)
+            batches = _dask_batches(dask_ex, cfg, todo)
+        else:
+            if executor is None and workers > 1 and len(todo) > 1:
+                pool = _AffinityPool(int(workers), initializer=_worker_init)
+                owned.callback(pool.shutdown, wait=True, cancel_futures=True)
+                records = pool.run(_run_task, todo, key=_target_of)
+            else:
+                records = _in_completion_order(executor, _run_task, todo)
+            batches = ([r] for r in records)
+        bar = owned.enter_context(tqdm(
+            total=len(tasks), initial=len(tasks) - len(todo), file=sys.stderr,
+            disable=not progress, desc=cfg["name"], unit="pair", dynamic_ncols=True))
+        solves = _Eigensolves()
+        for recs in batches:
+            fresh = []
+            for rec in recs:
+                if "error" in rec:
+                    failed.append(rec)
+                    tqdm.write(f"{rec['name']}: failed: {rec['error']}", file=sys.stderr)
+                    bar.update(1)
+                    continue
+                arrays = rec.pop("_arrays", None)
+                if arrays is not None:
+                    atomic_write(out / "maps" / f"{rec['name']}.npz",
+                                 lambda t, a=arrays: np.savez(t, **a))
+                if rec["key"] in by_key:  # an executor delivered a pair twice
+                    continue
+                by_key[rec["key"]] = rec
+                fresh.append(rec)
+                solves.add(rec)
+            if fresh:
+                _append_lines(path, fresh)
+                bar.update(len(fresh))
+                d = fresh[-1]["direct"]
+                bar.set_postfix_str(f"{fresh[-1]['name']} <0.25: {100 * d['under_0.25']:.0f}%"
+                                    + solves.postfix())
+        bar.close()
+        results = [by_key[t.key] for t in tasks if t.key in by_key]
+        if results:
+            summarize_run(results, out, config=cfg)
+    if todo and progress:
+        print(solves.line(), file=sys.stderr)
+    if failed:
+        print(f"{len(failed)} of {len(tasks)} pairs failed (re-run to retry)", file=sys.stderr)
+    return results
+
+
+class _Eigensolves:
+    """Eigensolves of a run, from its records: in pair tasks, and in shape tasks (Dask runs;
+    each distinct shape-task result counted once)."""
+
+    def __init__(self) -> None:
+        self.in_pairs = 0
+        self.shapes: dict[str, bool] = {}  # shape task result id -> it ran an eigensolve
+
+    def add(self, rec: Mapping[str, Any]) -> None:
+        self.in_pairs += int(rec.get("eigensolves", 0))
+        for meta in rec.get("shapes") or ():
+            self.shapes[meta["id"]] = bool(meta["computed"])
+
+    def postfix(self) -> str:
+        return f", {self.in_pairs + sum(self.shapes.values())} eigensolves"
+
+    def line(self) -> str:
+        n = sum(self.shapes.values())
+        return (f"eigensolves this run: {n + self.in_pairs} ({n} in {len(self.shapes)} shape "
+                f"tasks, {self.in_pairs} in pair tasks)")
+
+
+def preprocess(
+    source: str | os.PathLike,
+    cache: str | os.PathLike | None = None,
+    executor: Any = None,
+    k: int | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Fill the per-shape disk cache of a config's dataset or of a folder of meshes.
+
+    One task per shape (:meth:`torchheat.datasets.ShapeCollection.fill_cache`); afterwards a
+    run of the config with ``cache`` set, or a ``DataLoader`` over the collection with the
+    same :class:`~torchheat.datasets.Preprocess` and cache folder, runs no eigensolve.
+
+    Parameters
+    ----------
+    source : path-like
+        A run config (its dataset, its ``prepare`` options ``k``/``kind``/``boundary`` and
+        its ``cache`` folder) or a folder of meshes.
+    cache : path-like, optional
+        The cache folder (default: the config's ``cache``, else
+        :func:`torchheat.datasets.default_cache_dir`). On a cluster: shared storage.
+    executor : object with ``map``, optional
+        E.g. a :class:`torchheat.executors.DaskExecutor`; default in-process.
+    k : int, optional
+        Eigenpairs (default: the config's ``prepare.k``, else 100).
+    progress : bool
+        tqdm progress bar on stderr.
+
+    Returns
+    -------
+    list of dict
+        Per shape: ``name``, ``path``, ``computed``, ``seconds``, ``host``.
+
+    Examples
+    --------
+    >>> from torchheat.executors import DaskExecutor
+    >>> with DaskExecutor("tcp://scheduler:8786") as ex:  # doctest: +SKIP
+    ...     done = preprocess("configs/tosca5k.yaml", cache="/shared/cache", executor=ex)
+    """
+    from .. import datasets
+
+    src = Path(source)
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such config file or folder of meshes")
+    if src.is_dir():
+        prep: dict[str, Any] = {} if k is None else {"k": int(k)}
+        cache_dir = str(cache or datasets.default_cache_dir())
+        shapes = datasets.folder(src, preprocess=_preprocess_of(prep), cache_dir=cache_dir)
+    else:
+        cfg = load_config(src)
+        prep = dict(cfg["prepare"], **({} if k is None else {"k": int(k)}))
+        cache_dir = str(cache or cfg["cache"] or datasets.default_cache_dir())
+        shapes = _load_dataset(cfg["dataset"], cfg["dataset_args"], cache_dir, prep).shapes
+    return shapes.fill_cache(executor, progress=progress)
