@@ -402,7 +402,7 @@ def test_ordered_pairs_and_fill_cache(tmp_path):
     files = deformed_spheres(tmp_path / "m", n=3, subdivisions=2)
     shapes = ShapeCollection(files, classes=["blob"] * 3, preprocess=Preprocess(k=8),
                              cache_dir=tmp_path / "c")
-    from torchheat.datasets import _within_class_pairs
+    from torchheat.datasets.loaders import _within_class_pairs
 
     assert _within_class_pairs(shapes, "ordered") == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0),
                                                       (2, 1)]
