@@ -107,8 +107,9 @@ def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
     """
     import numpy as np
 
-    f = fmap.detach().cpu().numpy() if hasattr(fmap, "detach") else np.asarray(fmap)
-    f = np.asarray(f, dtype=np.int64).reshape(-1)
+    from ._arrays import to_numpy
+
+    f = to_numpy(fmap, dtype=np.int64).reshape(-1)
     with open(path, "w", encoding="ascii") as fh:
         if f.size:
             fh.write("\n".join(map(str, f.tolist())))

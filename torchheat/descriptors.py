@@ -17,6 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ._arrays import to_numpy
 from .heat import HeatKernel
 from .mesh import Mesh
 
@@ -171,10 +172,7 @@ def feature_points(
     >>> int(feature_points(m, s.vertices[:, 2])[0]) == int(np.argmax(s.vertices[:, 2]))
     True
     """
-    h = np.asarray(
-        signature.detach().cpu().numpy() if isinstance(signature, torch.Tensor) else signature,
-        dtype=np.float64,
-    ).reshape(-1)
+    h = to_numpy(signature, dtype=np.float64).reshape(-1)
     if h.size != mesh.n_vertices:
         raise ValueError(f"signature has {h.size} values for a mesh of {mesh.n_vertices} vertices")
     R = ring_neighbors(mesh, rings).tocoo()
@@ -214,10 +212,7 @@ def farthest_point_sampling(
     >>> farthest_point_sampling(np.array([[0.0], [1.0], [10.0]]), 2).tolist()
     [2, 0]
     """
-    X = np.asarray(
-        points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points,
-        dtype=np.float64,
-    )
+    X = to_numpy(points, dtype=np.float64)
     n = X.shape[0]
     k = min(int(k), n)
     if start is None:

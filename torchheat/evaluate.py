@@ -54,6 +54,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ._arrays import to_numpy
 from .geometry import face_areas
 
 __all__ = [
@@ -75,13 +76,6 @@ SUMMARY_THRESHOLDS: tuple[float, ...] = (0.25, 0.1, 0.05)
 # --------------------------------------------------------------------------------------------
 # input helpers
 # --------------------------------------------------------------------------------------------
-def _to_numpy(x: Any) -> np.ndarray:
-    """Convert a numpy array, sequence or (CPU or GPU) torch tensor to a numpy array."""
-    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch tensor, without importing torch
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 def _as_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(V, F)`` as float64 ``[n, 3]`` and int64 ``[m, 3]`` contiguous numpy arrays.
 
@@ -97,8 +91,8 @@ def _as_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(
             "mesh must be a pair (V, F) or an object with a .numpy() method returning (V, F)"
         ) from exc
-    V = np.ascontiguousarray(_to_numpy(V), dtype=np.float64)
-    F_raw = _to_numpy(F)
+    V = np.ascontiguousarray(to_numpy(V), dtype=np.float64)
+    F_raw = to_numpy(F)
     if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] == 0:
         raise ValueError(f"vertices must have shape [n, 3] with n > 0, got {V.shape}")
     if F_raw.ndim != 2 or F_raw.shape[1] != 3 or F_raw.shape[0] == 0:
@@ -118,7 +112,7 @@ def _as_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _indices(x: Any, n: int, name: str) -> np.ndarray:
     """Validate a 1-D array of vertex indices in ``[0, n)``; return it as int64."""
-    a = _to_numpy(x)
+    a = to_numpy(x)
     if a.ndim == 0:
         a = a.reshape(1)
     if a.ndim != 1:
@@ -390,7 +384,7 @@ def geodesic_errors(
 
 
 def _check_errors(errors: Any) -> np.ndarray:
-    e = np.asarray(_to_numpy(errors), dtype=np.float64).ravel()
+    e = to_numpy(errors, dtype=np.float64).ravel()
     if e.size == 0:
         raise ValueError("errors is empty")
     if not np.all(np.isfinite(e)):
@@ -438,7 +432,7 @@ def cumulative_curve(
             raise ValueError(f"n_thresholds must be >= 2, got {n_thresholds}")
         thr = np.linspace(0.0, float(max_error), int(n_thresholds))
     else:
-        thr = np.asarray(_to_numpy(thresholds), dtype=np.float64).ravel()
+        thr = to_numpy(thresholds, dtype=np.float64).ravel()
         if thr.size == 0 or not np.all(np.isfinite(thr)):
             raise ValueError("thresholds must be a non-empty array of finite numbers")
     frac = np.searchsorted(e, thr, side="right") / e.size
@@ -675,8 +669,8 @@ def plot_cumulative(
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     for label, (thr, frac) in curves.items():
-        t = np.asarray(_to_numpy(thr), dtype=np.float64).ravel()
-        f = np.asarray(_to_numpy(frac), dtype=np.float64).ravel()
+        t = to_numpy(thr, dtype=np.float64).ravel()
+        f = to_numpy(frac, dtype=np.float64).ravel()
         if t.shape != f.shape:
             raise ValueError(f"curve {label!r}: thresholds and fraction lengths differ")
         ax.plot(t, 100.0 * f, label=str(label), linewidth=1.8)

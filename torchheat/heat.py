@@ -46,6 +46,7 @@ import scipy.sparse.linalg as sla
 import torch
 from scipy.special import ive
 
+from ._arrays import to_numpy
 from .eigen import SOLVER_TOL, EigensolverError, eigenpairs
 from .mesh import Mesh
 from .operators import Laplacian, laplacian, scipy_to_torch
@@ -654,10 +655,7 @@ class HeatKernel:
 
     # ---------------------------------------------------------------------------------
     def _reduced_sources(self, sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        src = np.asarray(
-            sources.detach().cpu().numpy() if isinstance(sources, torch.Tensor) else sources,
-            dtype=np.int64,
-        ).reshape(-1)
+        src = to_numpy(sources, dtype=np.int64).reshape(-1)
         if src.size and (src.min() < 0 or src.max() >= self.n):
             bad = src[(src < 0) | (src >= self.n)][:5].tolist()
             raise IndexError(f"source vertices {bad} out of range for a mesh of {self.n} vertices")

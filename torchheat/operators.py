@@ -31,6 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ._arrays import to_numpy
 from .eigen import cotmatrix_scipy as _cotmatrix_scipy
 from .eigen import massmatrix_scipy as _massmatrix_scipy
 from .mesh import Mesh, MeshError
@@ -82,8 +83,7 @@ def quiet_sparse_construction() -> Iterator[None]:
 
 
 def _arrays(V, F) -> tuple[np.ndarray, np.ndarray]:
-    V = V.detach().cpu().numpy() if isinstance(V, torch.Tensor) else np.asarray(V)
-    F = F.detach().cpu().numpy() if isinstance(F, torch.Tensor) else np.asarray(F)
+    V, F = to_numpy(V), to_numpy(F)
     return np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)
 
 

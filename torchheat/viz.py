@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._arrays import to_numpy
 from ._files import atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -36,11 +37,7 @@ def _arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
         V, F = mesh.numpy()
     else:
         V, F = mesh
-        if hasattr(V, "detach"):
-            V = V.detach().cpu().numpy()
-        if hasattr(F, "detach"):
-            F = F.detach().cpu().numpy()
-    return np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64)
+    return to_numpy(V, dtype=np.float64), to_numpy(F, dtype=np.int64)
 
 
 def _label(mesh: Any, default: str) -> str:
@@ -176,8 +173,7 @@ def _draw_panel(
 
 
 def _check_map(fmap: Any, n_source: int, n_target: int) -> np.ndarray:
-    f = fmap.detach().cpu().numpy() if hasattr(fmap, "detach") else np.asarray(fmap)
-    f = np.asarray(f).reshape(-1)
+    f = to_numpy(fmap).reshape(-1)
     if f.size != n_source:
         raise ValueError(
             f"map has {f.size} entries but the source has {n_source} vertices; pass one "
@@ -268,10 +264,7 @@ def color_transfer(
     f = _check_map(fmap, len(Vs), len(Vt))
     err = None
     if errors is not None:
-        err = np.asarray(
-            errors.detach().cpu().numpy() if hasattr(errors, "detach") else errors,
-            dtype=np.float64,
-        ).reshape(-1)
+        err = to_numpy(errors, dtype=np.float64).reshape(-1)
         if err.size != len(Vs):
             raise ValueError(
                 f"errors has {err.size} entries but the source has {len(Vs)} vertices"

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .._arrays import to_numpy
 from .caches import _geodesics, _load_dataset, _prepared, _preprocess_of, _TargetGeodesics
 
 #: Fixed threshold grid of the per-pair cumulative curves (so curves can be averaged).
@@ -28,12 +29,6 @@ CURVE_THRESHOLDS: tuple[float, ...] = tuple(float(x) for x in np.round(np.linspa
 # --------------------------------------------------------------------------------------------
 # the per-pair task
 # --------------------------------------------------------------------------------------------
-def _to_np(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 def _barycentric_errors(geo: _TargetGeodesics, pred: np.ndarray, pair: Any,
                         src_rows: np.ndarray) -> list[np.ndarray]:
     """Errors against barycentric ground truth (SHREC'16 partial): for a true point ``g =
@@ -47,8 +42,8 @@ def _barycentric_errors(geo: _TargetGeodesics, pred: np.ndarray, pair: Any,
     for b in (pair.gt_bary, pair.gt_sym_bary):
         if b is None:
             continue
-        corners = _to_np(b.corners)[src_rows]
-        w = _to_np(b.weights)[src_rows]
+        corners = to_numpy(b.corners)[src_rows]
+        w = to_numpy(b.weights)[src_rows]
         parts = geo.errors(pred, [corners[:, j] for j in range(3)])
         out.append(sum(w[:, j] * parts[j] for j in range(3)))
     return out
@@ -142,10 +137,10 @@ tosca_remeshed_5k_symmetry`).
     time_match = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    fmap = _to_np(corr.map).astype(np.int64)
-    gs = _to_np(pair.gt_src).astype(np.int64)
-    gt = _to_np(pair.gt_tgt).astype(np.int64)
-    gsym = None if pair.gt_sym_tgt is None else _to_np(pair.gt_sym_tgt).astype(np.int64)
+    fmap = to_numpy(corr.map).astype(np.int64)
+    gs = to_numpy(pair.gt_src).astype(np.int64)
+    gt = to_numpy(pair.gt_tgt).astype(np.int64)
+    gsym = None if pair.gt_sym_tgt is None else to_numpy(pair.gt_sym_tgt).astype(np.int64)
     if eval_points is not None and eval_points < len(gs):
         rows = np.unique(np.linspace(0, len(gs) - 1, int(eval_points)).round().astype(np.int64))
         gs, gt = gs[rows], gt[rows]
@@ -212,7 +207,7 @@ tosca_remeshed_5k_symmetry`).
     if quality is not None and quality.ambiguous and corr.has_rival_map:
         # the map the choice passed over, scored like the direct map (only where the choice
         # was ambiguous: its dense map costs one more nearest-neighbour search)
-        rec["rival"] = _summary(errors_of(_to_np(corr.rival_map).astype(np.int64)[gs])[0])
+        rec["rival"] = _summary(errors_of(to_numpy(corr.rival_map).astype(np.int64)[gs])[0])
     part = corr.partial_summary()
     if part:  # how a partial match was made: its area ratio, the way kept and why
         rec["partial"] = part
@@ -346,7 +341,7 @@ def _run_shape(st: ShapeTask) -> dict[str, Any]:
             from ..mesh import load_mesh
 
             d = _preprocess_of(dict(st.prepare))(load_mesh(shapes.paths[st.index]))
-            out["data"] = {k: _to_np(v) if hasattr(v, "detach") else v for k, v in d.items()}
+            out["data"] = {k: to_numpy(v) if hasattr(v, "detach") else v for k, v in d.items()}
             meta = {"name": st.name, "computed": True, "seconds": time.perf_counter() - t0,
                     "host": host_id()}
         out["meta"] = {**meta, "id": uuid.uuid4().hex[:12]}

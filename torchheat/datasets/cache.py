@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
+from .._arrays import to_numpy
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh
@@ -69,12 +69,6 @@ def default_cache_dir() -> Path:
     return Path("~/.cache/torchheat").expanduser()
 
 
-def _to_numpy(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 # --------------------------------------------------------------------------------------------
 # preprocessing
 # --------------------------------------------------------------------------------------------
@@ -118,7 +112,7 @@ class Preprocess:
 
     def __post_init__(self) -> None:
         if self.times is not None:
-            t = tuple(float(x) for x in np.asarray(_to_numpy(self.times), dtype=np.float64).ravel())
+            t = tuple(float(x) for x in to_numpy(self.times, dtype=np.float64).ravel())
             if not t or min(t) <= 0:
                 raise ValueError("times must be a non-empty sequence of positive numbers")
             object.__setattr__(self, "times", t)

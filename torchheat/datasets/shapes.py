@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .._arrays import to_numpy
 from .._files import atomic_write
 from ..heat import HeatKernel
 from ..mesh import Mesh, load_mesh
@@ -31,7 +32,6 @@ from .cache import (
     CACHE_VERSION,
     PathLike,
     Preprocess,
-    _to_numpy,
     default_cache_dir,
     file_sha256,
     host_id,
@@ -380,7 +380,7 @@ class ShapeCollection(Dataset):
             return None
 
     def _save_cache(self, cpath: Path, sha: str, data: dict[str, Any]) -> None:
-        arrays = {k: _to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
+        arrays = {k: to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
         arrays.update({k: np.float64(data[k]) for k in _SCALAR_KEYS})
         arrays["meta"] = np.array(self._meta(sha))
         atomic_write(cpath, lambda tmp: np.savez(tmp, **arrays))  # tmp ends in .npz as cpath
