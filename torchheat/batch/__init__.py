@@ -78,32 +78,36 @@ Examples
 
 from __future__ import annotations
 
-# names the command line, scripts and tests reach as ``torchheat.batch.<name>`` (kept from the
-# single-module layout)
-from .caches import _prepared, _TargetGeodesics, clear_caches  # noqa: F401, E402
+# names marked `noqa: F401` are not public API: the command line, scripts and tests reach them
+# as ``torchheat.batch.<name>``, as in the single-module layout
+from .caches import _prepared, _TargetGeodesics, clear_caches  # noqa: F401 (all three)
 from .commands import main, preprocess_main
 from .config import (
     ConfigError,
     Executor,
     load_config,
-    options_hash,  # noqa: F401, E402
+    options_hash,  # noqa: F401
 )
 from .report import (
-    _row,  # noqa: F401, E402
+    _row,  # noqa: F401
     summarize_run,
 )
-from .results import RESULTS, _append_lines, load_results  # noqa: F401, E402
+from .results import (
+    RESULTS,  # noqa: F401
+    _append_lines,  # noqa: F401
+    load_results,
+)
 from .runner import (
-    _AffinityPool,  # noqa: F401, E402
+    _AffinityPool,  # noqa: F401
     preprocess,
     run,
 )
-from .task import (  # noqa: F401, E402
+from .task import (
     CURVE_THRESHOLDS,
     PairTask,
-    ShapeTask,
-    _barycentric_errors,
-    _error_record,
+    ShapeTask,  # noqa: F401
+    _barycentric_errors,  # noqa: F401
+    _error_record,  # noqa: F401
     evaluate_pair,
 )
 
