@@ -2,7 +2,7 @@
 """torchheat against pyFM's README pipeline, side by side on the same pairs and metric.
 
     python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape] [--points 300]
-                                   [--process] [--out out/compare_pyfm.json]
+                                   [--process] [--fine K] [--out out/compare_pyfm.json]
 
 pyFM (``pip install pyfmaps``; an optional dependency of this script only, never imported by
 the package) runs the pipeline of its README (v1.3.1): ``TriMesh.load(path, area_normalize=
@@ -10,8 +10,9 @@ True, center=True)``, ``preprocess(descr_type="WKS", subsample_step=2)``, ``fit(
 w_descr=1, w_lap=0.1, w_dcomm=1, w_orient=1)`` (the orientation-preserving term), then
 ``zoomout_refine(nit=16, step=5)`` (30 -> 110 eigenfunctions) and ``get_p2p``. pyFM's
 ``p2p_21`` maps mesh2's vertices to mesh1, so mesh1 is our target and mesh2 our source.
-torchheat runs ``prepare`` + ``match`` with default options. Both in this process, one
-thread (BLAS and torch), back to back per pair.
+torchheat runs ``prepare`` + ``match`` with default options (``--fine K``: ``match(fine_k=K)``,
+the command line's ``--fine K``). Both in this process, one thread (BLAS and torch), back to
+back per pair.
 
 Metric (the same for both): Princeton error ε(x) = d_N(f(x), f*(x)) / sqrt(area N) on
 ``--points`` evenly spaced ground-truth rows per pair (``torchheat.evaluate.geodesic_errors``,
@@ -127,12 +128,13 @@ def _path(shape) -> str:
     return str(shape.path)
 
 
-def process_times(src: str, tgt: str, tmp: Path) -> dict:
+def process_times(src: str, tgt: str, tmp: Path, fine: int | None = None) -> dict:
     """Whole-process wall times of both tools on one pair, back to back."""
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    extra = [] if fine is None else ["--fine", str(fine)]
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", "from torchheat.cli import run; run()", "match",
-                    src, tgt, "-o", str(tmp / "th.txt"), "--threads", "1"],
+                    src, tgt, "-o", str(tmp / "th.txt"), "--threads", "1", *extra],
                    check=True, env=env, capture_output=True)
     t1 = time.perf_counter()
     subprocess.run([sys.executable, "-c", PYFM_SNIPPET, src, tgt, str(tmp / "pyfm.txt")],
@@ -148,7 +150,7 @@ def main(argv: list[str]) -> None:
     from torchheat.evaluate import GeodesicSolver
 
     torch.set_num_threads(1)
-    name, points, proc, outf = "tosca12", 300, False, None
+    name, points, proc, outf, fine = "tosca12", 300, False, None, None
     it = iter(argv)
     for a in it:
         if a == "--set":
@@ -159,6 +161,8 @@ def main(argv: list[str]) -> None:
             proc = True
         elif a == "--out":
             outf = next(it)
+        elif a == "--fine":
+            fine = int(next(it))
         else:
             raise SystemExit(__doc__)
     pc = pairs_of(name)
@@ -171,7 +175,7 @@ def main(argv: list[str]) -> None:
         sel = rows(len(gs), points)
         gsym = None if pr.gt_sym_tgt is None else pr.gt_sym_tgt.numpy()[sel]
         t0 = time.perf_counter()
-        corr = torchheat.match(torchheat.prepare(S), torchheat.prepare(T))
+        corr = torchheat.match(torchheat.prepare(S), torchheat.prepare(T), fine_k=fine)
         f_th = corr.map.numpy()
         t1 = time.perf_counter()
         f_pf = pyfm_map(_path(pr.source), _path(pr.target))
@@ -184,7 +188,7 @@ def main(argv: list[str]) -> None:
             rec[tool] = {"direct": _summary(e["direct"]), "flip": _summary(e["flip"])}
         if proc and i == 0:
             rec.update(process_times(_path(pr.source), _path(pr.target),
-                                     Path(outf or "out/compare_pyfm.json").parent))
+                                     Path(outf or "out/compare_pyfm.json").parent, fine))
         res.append(rec)
         print(f"{pr.name:22s} torchheat {rec['torchheat']['direct']['under_0.25']:.3f} "
               f"({rec['torchheat']['direct']['mean']:.4f}, {rec['torchheat_s']:.2f} s)  "

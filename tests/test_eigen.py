@@ -65,6 +65,20 @@ def test_workers_give_the_in_process_eigenpairs():
 
 
 @linux
+def test_workers_solve_one_mesh_at_two_sizes():
+    # the command line's --fine: the default basis, then a larger one of the same mesh
+    V, F = generic_sphere(4, seed=5)
+    with EigenWorkers([(V, F), (V, F)], k=[10, 25], processes=2) as bg:
+        small, large = bg.get(0), bg.get(1)
+    assert small[1].shape == (len(V), 10) and large[1].shape == (len(V), 25)
+    lam, _ = cotan_eigenpairs(V, F, k=25)
+    assert np.allclose(large[0], lam, rtol=1e-10, atol=1e-9)
+    assert np.allclose(small[0], lam[:10], rtol=1e-10, atol=1e-9)
+    with pytest.raises(ValueError, match="2 meshes"):
+        EigenWorkers([(V, F), (V, F)], k=[10, 25, 30], processes=0)
+
+
+@linux
 def test_workers_off_or_failing_return_none():
     V, F = generic_sphere(2)
     with EigenWorkers([(V, F)], k=5, processes=0) as bg:

@@ -323,3 +323,104 @@ def test_row_basis_solves_every_prefix_as_lstsq_and_maps_as_brute_force():
     X = flat[rows, :10].numpy()
     ref = scipy.linalg.lstsq(X, B.numpy())[0]
     assert np.allclose(X @ C.numpy(), X @ ref, atol=1e-8)
+
+
+# --- fine maps (match(fine_k=...), zoomout.fine_map) -------------------------------------------
+def test_argmin_certified_is_the_float64_nearest_neighbour_on_near_ties():
+    from torchheat.matching.nn import _argmin_certified
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(700, 200, dtype=torch.float64, generator=g)
+    Y = torch.randn(900, 200, dtype=torch.float64, generator=g)
+    # near ties float32 cannot resolve: targets 1e-9 apart, and queries equidistant up to 1e-10
+    Y[450:] = Y[:450] + 1e-9 * torch.randn(450, 200, dtype=torch.float64, generator=g)
+    X[:300] = Y[:300] + 1e-3 * torch.randn(300, 200, dtype=torch.float64, generator=g)
+    mid = 0.5 * (Y[300:350] + Y[750:800])
+    X[300:350] = mid + 1e-10 * torch.randn(50, 200, dtype=torch.float64, generator=g)
+    # exact squared distances (differences first: no cancellation), in row chunks
+    d = torch.cat([((x[:, None, :] - Y[None]) ** 2).sum(-1) for x in X.split(50)])
+    best = d.min(1).values
+    got = _argmin_certified(X, Y, memory_bytes=200 * 900 * 4)  # several row blocks
+    # a float64-accurate nearest neighbour for every row (an exact tie may pick either)
+    assert float((d.gather(1, got[:, None]).squeeze(1) - best).max()) <= 1e-12
+    # ... where a plain float32 search is not
+    X32, Y32 = X.float(), Y.float()
+    plain = torch.cdist(X32, Y32, compute_mode="use_mm_for_euclid_dist").argmin(1)
+    assert float((d.gather(1, plain[:, None]).squeeze(1) - best).max()) > 1e-9
+
+
+def test_eigenpairs_beyond_the_held_basis_follow_the_sphere_spectrum():
+    import trimesh
+
+    from torchheat.heat import HeatKernel
+
+    s = trimesh.creation.icosphere(4)
+    hk = HeatKernel(Mesh(s.vertices, s.faces), k=10)
+    lam, phi = hk.eigenpairs(25)
+    assert phi.shape == (hk.n, 25) and hk.eigenvalues.numel() == 10  # the solver keeps its 10
+    assert torch.allclose(lam[:10], hk.eigenvalues, rtol=1e-6, atol=1e-8)
+    # unit-area sphere: lambda = 4 pi l (l + 1) with multiplicity 2l + 1 (l = 0 .. 4)
+    exact = torch.tensor([4 * math.pi * ell * (ell + 1) for ell in range(5)
+                          for _ in range(2 * ell + 1)], dtype=torch.float64)
+    assert float((lam[1:] / exact[1:] - 1).abs().max()) < 0.02 and abs(float(lam[0])) < 1e-6
+    a = hk.vertex_mass
+    gram = phi.T @ (a[:, None] * phi)
+    assert torch.allclose(gram, torch.eye(25, dtype=torch.float64), atol=1e-8)
+
+
+def test_fine_map_keeps_a_permutation_and_runs_from_the_command_line(spot_pair, tmp_path,
+                                                                     capsys):
+    from test_cli import write_off
+
+    S, T, perm = spot_pair
+    c = match(S, T, fine_k=140)
+    assert (c.map == perm).float().mean() >= 0.99  # computed on first access
+    assert c.info["fine_k"] == 140 and "fine_map" in c.info["timings"]
+    assert S.caches.basis.shape == (S.n, 140)  # solved once, kept on the shape
+    # the command line: --fine [K], refused where it does not apply
+    a = write_off(tmp_path / "a.off", *S.mesh.numpy())
+    b = write_off(tmp_path / "b.off", *T.mesh.numpy())
+    rep = tmp_path / "r.json"
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m.txt"), "--fine", "120",
+                 "--report", str(rep), "--threads", "1"]) == 0
+    r = json.loads(rep.read_text())
+    assert r["fine_k"] == 120 and "fine_map" in r["timings"]
+    assert (np.loadtxt(tmp_path / "m.txt", dtype=np.int64) == perm.numpy()).mean() >= 0.99
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m2.txt"), "--fine",
+                 "--no-zoomout"]) == 1
+    assert not (tmp_path / "m2.txt").exists() and "--fine" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="fine_k"):
+        match(S, T, fine_k=150, method="paper")
+
+
+def test_offered_basis_is_kept_only_if_it_extends_the_heat_kernels():
+    from torchheat.eigen import cotan_eigenpairs
+    from torchheat.matching.prepared import _basis, offer_basis
+
+    V, F = generic_sphere(3, seed=4)
+    shape = prepare(Mesh(V, F), k=20)
+    lam, phi = cotan_eigenpairs(V, F, k=35)
+    assert not offer_basis(shape, lam[:20], phi[:, :20])  # no larger than the held one
+    assert not offer_basis(shape, lam * 1.01, phi)  # another operator's (e.g. another scale)
+    assert not offer_basis(shape, lam, phi[:-1])  # other vertices
+    assert shape.caches.basis is None
+    assert offer_basis(shape, lam, phi)
+    assert torch.equal(_basis(shape, 30), torch.from_numpy(phi[:, :30]))
+    assert torch.equal(_basis(shape, 12), shape.hk.eigenvectors[:, :12])  # the heat kernel's
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SHARED / "tosca_remeshed_5k").exists(), reason="shared data absent")
+def test_fine_map_is_finer_on_a_real_pair():
+    # TOSCA cat0 -> cat10 (independently remeshed): 100 -> 200 modes, measured 0.0167 ->
+    # 0.0135 mean error / sqrt(area); the choice of the map is the same
+    from torchheat.batch import evaluate_pair
+    from torchheat.datasets import tosca_remeshed_5k
+
+    pair = next(p for p in tosca_remeshed_5k(root=SHARED, classes=["cat"])
+                if p.name == "cat0-cat10")
+    base = evaluate_pair(pair, {}, eval_points=300)
+    fine = evaluate_pair(pair, {"fine_k": 200}, eval_points=300)
+    assert base["landmarks"] == fine["landmarks"]
+    assert fine["direct"]["under_0.25"] >= 0.99
+    assert fine["direct"]["mean"] < 0.9 * base["direct"]["mean"]

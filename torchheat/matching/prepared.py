@@ -56,6 +56,9 @@ class ShapeCaches:
     filled_eigenpairs : (lam, phi) or None
         Eigenpairs of ``filled_mesh`` solved elsewhere (the command line's background workers,
         ``partial_scale.offer_filled``); the filled way prepares the closed piece with them.
+    basis : torch.Tensor or None, float64, shape (n, K)
+        An eigenbasis larger than the heat kernel's (:func:`_basis`: ``match(fine_k=K)``'s
+        last ZoomOut), solved once per shape.
     """
 
     fps: torch.Tensor | None = None
@@ -65,6 +68,7 @@ class ShapeCaches:
     filled_mesh: Mesh | None = None
     filled_eigenpairs: tuple | None = None
     boundary_distance: dict = field(default_factory=dict)
+    basis: torch.Tensor | None = None
 
 
 @dataclass
@@ -128,6 +132,49 @@ def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
         V, _ = shape.mesh.numpy()
         cached = shape.caches.fps = farthest_point_sampling(V, max(k, 256))
     return cached[:k]
+
+
+def _basis(shape: PreparedShape, k: int) -> torch.Tensor:
+    """The first ``k`` mass-orthonormal eigenfunctions of the shape, float64, shape (n, k'):
+    the heat kernel's when it holds ``k`` of them, otherwise one new eigensolve
+    (:meth:`~torchheat.heat.HeatKernel.eigenpairs`) kept in the shape's caches (shared by its
+    role copies) and cut to ``k``. ``k' = min(k, free vertices)``."""
+    if k <= shape.hk.eigenvalues.numel():
+        return shape.hk.eigenvectors[:, :k].to(torch.float64)
+    cached = shape.caches.basis
+    if cached is None or cached.shape[1] < k:
+        cached = shape.caches.basis = shape.hk.eigenpairs(k)[1]
+    return cached[:, :k]
+
+
+def offer_basis(shape: PreparedShape, lam: Any, phi: Any) -> bool:
+    """Give the shape a larger eigenbasis solved elsewhere (the command line's background
+    workers, ``--fine``), for :func:`_basis`. Kept only if it extends the heat kernel's: more
+    columns, on the same vertices, its first eigenvalues those of the heat kernel (relative
+    1e-6); otherwise ignored (``_basis`` then solves it in-process), so an offer never changes
+    a result.
+
+    Parameters
+    ----------
+    shape : PreparedShape
+    lam : array_like, shape (K,)
+    phi : array_like, shape (n, K)
+
+    Returns
+    -------
+    bool
+        Whether the basis was kept.
+    """
+    lam = np.asarray(lam, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64)
+    held = shape.hk.eigenvalues.numpy()
+    if phi.ndim != 2 or phi.shape != (shape.n, lam.size) or lam.size <= held.size:
+        return False
+    scale = max(float(np.abs(held).max()) if held.size else 0.0, 1e-300)
+    if not np.all(np.abs(lam[: held.size] - held) <= 1e-6 * scale):
+        return False
+    shape.caches.basis = torch.from_numpy(phi)
+    return True
 
 
 def _memoised(memo: dict | None, key: tuple, compute: Callable[[], Any]) -> Any:

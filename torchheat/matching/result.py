@@ -138,6 +138,7 @@ class Correspondence:
             else int(self.info["n_target"]),
             "method": self.info.get("method"),
             "zoomout": self.info.get("zoomout"),
+            "fine_k": self.info.get("fine_k"),
             **({"search": self.info["search"]} if self.info.get("search") else {}),
             "landmarks": [[int(a), int(b)] for a, b in self.landmarks],
             "orientation": None if o != o else float(o),

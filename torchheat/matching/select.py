@@ -29,7 +29,7 @@ from .partial import dense_partial_map, partial_zoomout
 from .prepared import PreparedShape, _fps, _memoised
 from .quality import map_quality
 from .refine import _Refiner
-from .zoomout import ZoomOutResult, dense_spectral_map, spectral_map, zoomout
+from .zoomout import ZoomOutResult, dense_spectral_map, fine_map, spectral_map, zoomout
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
 _ZO_STEP = 8  # modes added per ZoomOut step
@@ -494,11 +494,18 @@ def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refi
 
 
 def _dense_spectral(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
-                    num_threads: int | None, timings: dict) -> Callable[[], torch.Tensor]:
-    """The dense map of a functional map, deferred (as :func:`.refine._dense_final`)."""
+                    num_threads: int | None, timings: dict, fine_k: int | None = None
+                    ) -> Callable[[], torch.Tensor]:
+    """The dense map of a functional map, deferred (as :func:`.refine._dense_final`); with
+    ``fine_k``, refined to that many modes first (:func:`.zoomout.fine_map`, timed as
+    ``"fine_map"``)."""
 
     def compute() -> torch.Tensor:
         t0 = time.perf_counter()
+        if fine_k is not None:
+            out = fine_map(src, tgt, C, fine_k, num_threads)[0]
+            timings["fine_map"] = timings.get("fine_map", 0.0) + time.perf_counter() - t0
+            return out
         out = dense_spectral_map(src, tgt, C, num_threads)
         timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
         return out
