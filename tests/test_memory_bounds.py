@@ -143,8 +143,8 @@ def test_chebyshev_blocks_within_budget(monkeypatch):
     src = list(range(0, 162, 7))  # 24 sources
     ref = hk.columns(src)
     degree = int(hk.plan["degree"].max())
-    per_source = 162 * (th._staged_steps(degree) + 2 * 2 + 1) * 8
-    assert th._chebyshev_block(162, 2, degree, 8, 64) == 64  # 1 GiB: the default block
+    per_source = 162 * (th.chebyshev._staged_steps(degree) + 2 * 2 + 1) * 8
+    assert th.chebyshev._chebyshev_block(162, 2, degree, 8, 64) == 64  # 1 GiB: the default
     blocks: list[int] = []
     orig = hk._chebyshev
 
@@ -153,7 +153,7 @@ def test_chebyshev_blocks_within_budget(monkeypatch):
         return orig(red, tj, degrees)
 
     monkeypatch.setattr(hk, "_chebyshev", spy)
-    monkeypatch.setattr(th, "CHEBYSHEV_BYTES", 5 * per_source + 1)
+    monkeypatch.setattr(th.chebyshev, "CHEBYSHEV_BYTES", 5 * per_source + 1)
     got = hk.columns(src)
     assert blocks == [5, 5, 5, 5, 4]
     # columns do not depend on their block (to the last bits: the sparse product's summation

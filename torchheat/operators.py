@@ -16,7 +16,7 @@ Conventions (those of the paper and of libigl / geometry-central):
 * Boundary conditions: ``"neumann"`` (natural, default) keeps all vertices; ``"dirichlet"``
   (zero on the boundary) keeps only the interior vertices in the reduced operators.
 
-Data flows ``mesh.py -> operators.py -> heat.py``.
+Data flows ``mesh.py -> operators.py -> heat/``.
 """
 
 from __future__ import annotations

@@ -1,33 +1,7 @@
-"""Heat kernel of a triangle mesh: batched columns and the Heat Kernel Signature.
-
-The paper defines the heat kernel matrix ``K_t = exp(-t L) A^-1`` with ``L = A^-1 W`` (lumped
-mass ``A``, stiffness ``W``), so that ``k_t(p, x) = K_t[x, p]`` is the heat at ``x`` at time ``t``
-after a unit of heat was placed at ``p``. With the symmetric form ``S = A^-1/2 W A^-1/2``,
-
-    K_t = A^-1/2 exp(-t S) A^-1/2,   column p:  k_t(p, .) = A^-1/2 exp(-t S) e_p / sqrt(a_p).
-
-Two ways to apply ``exp(-t S)`` are combined:
-
-* **Eigenbasis** (spectral): ``exp(-tS) ~ Psi_k exp(-t Lambda_k) Psi_k^T`` with the ``k`` smallest
-  eigenpairs (shift-invert Lanczos). Exact up to the truncation ``exp(-t lambda_{k+1})`` in
-  operator norm: good for large ``t``, useless for small ``t``.
-* **Chebyshev**: ``exp(-t lambda) = e^-c [I_0(c) + 2 sum_k (-1)^k I_k(c) T_k(x)]`` with
-  ``x = 2 lambda / lambda_max - 1`` and ``c = t lambda_max / 2`` (Jacobi–Anger; ``I_k``
-  modified Bessel functions, ``scipy.special.ive``). One three-term recurrence on torch sparse
-  tensors serves a whole block of sources and all times at once; the degree per ``t`` is the
-  first whose coefficient tail is below the target, about ``3.6 sqrt(t lambda_max)`` for 1e-6.
-
-The **hybrid** plan (default) uses the eigenbasis for every time whose truncation bound meets
-``rtol`` and Chebyshev for the rest (the small times). Every value returned by
-:meth:`HeatKernel.columns` carries an a-posteriori bound on its relative L2 error (per source
-and time, see :attr:`HeatKernel.error_bound`); any (source, time) whose bound exceeds ``rtol`` is
-recomputed with a higher Chebyshev degree, so the guarantee holds at every time, including
-``t = 0.001`` where a truncated spectrum is several percent wrong.
-
-Bound used (exact arithmetic; rounding adds about ``degree * eps``): if the operator error on
-``u = exp(-tS) e_p`` is at most ``eta`` in the 2-norm (Chebyshev: the coefficient tail; spectral:
-``exp(-t lambda_k)``), the column error is at most ``eta / sqrt(a_min a_p)`` and the relative
-error at most ``eta / (sqrt(a_min a_p) ||c_hat|| - eta)`` where ``c_hat`` is the computed column.
+"""The heat kernel solver :class:`HeatKernel`: set-up (operator, eigenbasis, spectral bound),
+the plan (which times the eigenbasis serves, the Chebyshev degree of the others), and the
+dispatch of :meth:`HeatKernel.columns` to :mod:`.spectral`, :mod:`.chebyshev` and
+:mod:`.certify`. See :mod:`torchheat.heat` for the conventions.
 """
 
 from __future__ import annotations
@@ -42,23 +16,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 import torch
-from scipy.special import ive
 
-from ._arrays import to_numpy
-from .eigen import SOLVER_TOL, EigensolverError, eigenpairs
-from .mesh import Mesh
-from .operators import Laplacian, laplacian, scipy_to_torch
+from .._arrays import to_numpy
+from ..eigen import EigensolverError, eigenpairs
+from ..mesh import Mesh
+from ..operators import Laplacian, laplacian, scipy_to_torch
+from . import chebyshev
+from .certify import column_norms, relative_bound
+from .chebyshev import (
+    _chebyshev_block,
+    _flush_denormal,
+    chebyshev_columns,
+    chebyshev_degree,
+    chebyshev_tail,
+    lambda_max_bound,
+)
+from .spectral import _check_eigenpairs, spectral_columns
 
-__all__ = [
-    "HeatKernel",
-    "default_times",
-    "chebyshev_coefficients",
-    "chebyshev_degree",
-    "lambda_max_bound",
-    "threads",
-]
+__all__ = ["HeatKernel", "default_times", "threads"]
 
 
 def default_times(n: int = 10, t_min: float = 1e-3, t_max: float = 2.0) -> torch.Tensor:
@@ -84,104 +60,6 @@ def default_times(n: int = 10, t_min: float = 1e-3, t_max: float = 2.0) -> torch
     return torch.logspace(math.log10(t_min), math.log10(t_max), n, dtype=torch.float64)
 
 
-def chebyshev_coefficients(c: float, degree: int) -> np.ndarray:
-    """Chebyshev coefficients of ``exp(-c (x + 1))`` on ``[-1, 1]``.
-
-    ``exp(-t lambda)`` with ``x = 2 lambda / lambda_max - 1`` is this function for
-    ``c = t lambda_max / 2``.
-
-    Parameters
-    ----------
-    c : float
-        Non-negative scale.
-    degree : int
-        Highest degree K.
-
-    Returns
-    -------
-    numpy.ndarray
-        Shape (K + 1,): ``a_0 = ive(0, c)``, ``a_k = 2 (-1)^k ive(k, c)``.
-
-    Examples
-    --------
-    >>> a = chebyshev_coefficients(3.0, 40)
-    >>> bool(abs(np.polynomial.chebyshev.chebval(0.2, a) - np.exp(-3.0 * 1.2)) < 1e-14)
-    True
-    """
-    k = np.arange(degree + 1)
-    a = 2.0 * ive(k, c) * np.where(k % 2 == 0, 1.0, -1.0)
-    a[0] *= 0.5
-    return a
-
-
-def chebyshev_degree(c: float, tail: float) -> int:
-    """Smallest degree K whose coefficient tail ``sum_{k>K} |a_k|`` is at most ``tail``.
-
-    The tail bounds the uniform error of the truncated series on ``[-1, 1]`` and hence the
-    operator-norm error of ``exp(-tS)``.
-
-    Parameters
-    ----------
-    c : float
-        ``t lambda_max / 2``.
-    tail : float
-        Target bound.
-
-    Returns
-    -------
-    int
-
-    Examples
-    --------
-    >>> chebyshev_degree(0.0, 1e-6)
-    0
-    >>> chebyshev_degree(100.0, 1e-6) > chebyshev_degree(10.0, 1e-6)
-    True
-    """
-    kmax = int(c + 12.0 * math.sqrt(c + 1.0) + 40)
-    a = np.abs(chebyshev_coefficients(c, kmax))
-    tails = np.cumsum(a[::-1])[::-1]  # tails[K] = sum_{k >= K}
-    ok = np.flatnonzero(np.append(tails[1:], 0.0) <= tail)
-    return int(ok[0])
-
-
-def lambda_max_bound(S: sp.spmatrix, tol: float = 1e-4) -> float:
-    """An upper bound of the largest eigenvalue of a symmetric PSD sparse matrix.
-
-    One Lanczos run (``eigsh(k=1)``, about 10 ms on 10k vertices) with a 1 % safety margin,
-    capped by the Gershgorin bound (free and always safe but 1.1–1.7x loose on meshes).
-
-    Parameters
-    ----------
-    S : scipy.sparse matrix, shape (n, n)
-    tol : float
-        Relative Lanczos tolerance.
-
-    Returns
-    -------
-    float
-
-    Examples
-    --------
-    >>> import scipy.sparse as sp
-    >>> round(lambda_max_bound(sp.diags([1.0, 2.0, 3.0])), 2)  # Gershgorin is exact here
-    3.0
-    """
-    S = sp.csr_matrix(S)
-    gersh = float(np.max(np.asarray(abs(S).sum(axis=1)).ravel()))
-    n = S.shape[0]
-    if n <= 3:
-        return min(gersh, float(np.linalg.eigvalsh(S.toarray())[-1]) * 1.01 + 1e-300)
-    try:
-        theta = float(
-            sla.eigsh(S, k=1, which="LA", tol=tol, return_eigenvectors=False,
-                      v0=np.ones(n))[0]
-        )
-    except sla.ArpackNoConvergence:  # pragma: no cover - extremely rare
-        return gersh
-    return min(gersh, theta * (1.0 + 100 * tol))
-
-
 @contextmanager
 def threads(n: int | None):
     """Temporarily set torch's intra-op thread count (``None`` leaves it unchanged).
@@ -204,89 +82,6 @@ def threads(n: int | None):
         yield
     finally:
         torch.set_num_threads(old)
-
-
-def _check_eigenpairs(W: sp.spmatrix, A: sp.spmatrix, lam: np.ndarray, phi: np.ndarray,
-                      mesh: object) -> None:
-    """Refuse given eigenpairs that are not this operator's (stale cache, another mesh).
-
-    The test is the eigensolver's own backward error, so it is scale-aware: with ``D`` the
-    (lumped) mass diagonal and ``S = D^-1/2 W D^-1/2``, the residual
-    ``rho_i = |D^-1/2 (W phi_i - lam_i A phi_i)| / (|S|_G |D^1/2 phi_i|)``, where ``|S|_G`` is
-    the Gershgorin bound of ``|S|`` (free, never below ``lambda_max``). ARPACK in shift-invert
-    at relative tolerance ``tol`` guarantees ``rho <= tol`` (1e-10), every path of
-    :func:`torchheat.eigen.eigenpairs` ``rho <= SOLVER_TOL`` (1e-9; dense: ~1e-16), so the
-    limit ``10 SOLVER_TOL`` never refuses a correct solve, whatever the mesh size or
-    eigenvalue (a residual relative to ``lam_i`` once refused the constant mode of every
-    60k-vertex mesh). Another mesh's pairs read >= 1e-5; another pose of the same
-    connectivity (KIDS 60k) reads 3e-7 at the median column, up to 3e-6.
-    Checked on 8 spread columns (a wrong set fails on most): ``O(8 nnz)``, ~10 ms at 60k.
-    """
-    cols = np.unique(np.linspace(0, lam.size - 1, min(8, lam.size)).astype(np.int64))
-    lam, phi = lam[cols], np.ascontiguousarray(phi[:, cols])
-    d = np.asarray(A.sum(axis=1)).ravel()
-    isq = 1.0 / np.sqrt(np.maximum(d, 1e-300))
-    s_norm = float(np.max(isq * (abs(W) @ isq), initial=0.0))  # Gershgorin bound of |S|
-    r = (W @ phi - (A @ phi) * lam) * isq[:, None]
-    den = np.linalg.norm(phi / isq[:, None], axis=0) * max(s_norm, 1e-300)
-    rel = np.linalg.norm(r, axis=0) / den
-    if rel.size and not float(rel.max()) <= _EIGENPAIR_TOL:
-        i = int(np.nanargmax(np.nan_to_num(rel, nan=np.inf)))
-        name = getattr(mesh, "name", None) or "mesh"
-        raise ValueError(
-            f"{name}: the given eigenpairs are not those of this operator (eigenpair "
-            f"{int(cols[i])} has backward error {float(rel[i]):.1e}, limit "
-            f"{_EIGENPAIR_TOL:.0e}); recompute them (a stale cache or another mesh's "
-            "eigenpairs?)"
-        )
-
-
-#: Largest backward error of given eigenpairs (:func:`_check_eigenpairs`): 10x the solver's.
-_EIGENPAIR_TOL = 10 * SOLVER_TOL
-
-
-@contextmanager
-def _flush_denormal(enabled: bool):
-    if not enabled:
-        yield
-        return
-    # torch.set_flush_denormal returns whether the CPU supports it, not the previous state, and
-    # torch has no getter: restore the default (off). Left on (as this once did), it changed
-    # later float64 work in the process: scipy's cKDTree then crashed on heat-kernel
-    # descriptors whose tiny entries the flag turns into zeros.
-    supported = torch.set_flush_denormal(True)
-    try:
-        yield
-    finally:
-        if supported:
-            torch.set_flush_denormal(False)
-
-
-# Working-set budget (bytes) of one Chebyshev block: the recurrence's staging buffer, its
-# weighted sums and their result, ``m (steps + 2 Jc + 1)`` elements per source (m vertices,
-# Jc Chebyshev times, ``steps`` = :func:`_staged_steps`). The default block of 64 sources fits
-# up to ~40k vertices (float64, 10 times, 32 steps); larger meshes get proportionally fewer
-# sources per block, so that memory grows linearly with the mesh (64 sources of a 300k-vertex
-# mesh would hold 7.6 GiB). Columns do not depend on the block they are computed in (tested).
-CHEBYSHEV_BYTES = 1 << 30
-
-
-def _staged_steps(degree: int) -> int:
-    """Recurrence steps staged per GEMM in :meth:`HeatKernel._chebyshev`."""
-    return max(3, min(32, int(degree) + 1))
-
-
-def _chebyshev_block(m: int, n_times: int, degree: int, esize: int, block: int,
-                     memory_bytes: int = CHEBYSHEV_BYTES) -> int:
-    """Sources per Chebyshev block: at most ``block``, within ``memory_bytes``, at least 1.
-
-    Examples
-    --------
-    >>> _chebyshev_block(10_000, 10, 300, 8, 64), _chebyshev_block(300_000, 10, 300, 8, 64)
-    (64, 8)
-    """
-    per_source = m * (_staged_steps(degree) + 2 * n_times + 1) * esize
-    return int(max(1, min(int(block), int(memory_bytes) // max(1, per_source))))
 
 
 @dataclass
@@ -706,49 +501,12 @@ class HeatKernel:
 
     def _chebyshev(self, red: np.ndarray, tj: np.ndarray, degrees: np.ndarray) -> torch.Tensor:
         """exp(-t S) e_p / sqrt(a_p) for reduced sources ``red`` and times ``tj``: [m, B, Jc]."""
-        m = self._idx.size
-        B = red.size
-        dev, dt = self.device, self.dtype
-        K = int(degrees.max())
-        coef = np.zeros((len(tj), K + 1))
-        for i, (t, d) in enumerate(zip(tj, degrees, strict=True)):
-            coef[i, : d + 1] = chebyshev_coefficients(float(t) * self.lambda_max / 2.0, int(d))
-        order = np.argsort(-degrees, kind="stable")  # times active at step k form a prefix
-        coef_t = torch.as_tensor(coef[order], dtype=dt, device=dev)  # [Jc, K + 1]
-        last = degrees[order]
-        v0 = torch.zeros((m, B), dtype=dt, device=dev)
-        v0[torch.as_tensor(red, device=dev), torch.arange(B, device=dev)] = torch.as_tensor(
-            1.0 / np.sqrt(self._a[red]), dtype=dt, device=dev
-        )
-        # T_k are staged in a buffer of `chunk` steps; the weighted sums over all times are
-        # then one GEMM per chunk, [Jc, chunk] x [chunk, m B], instead of Jc axpys per step.
-        chunk = _staged_steps(K)
-        buf = torch.empty((chunk, m * B), dtype=dt, device=dev)
-        acc = torch.zeros((len(tj), m * B), dtype=dt, device=dev)
-        X2 = self._X2
-        t_prev = t_cur = None
-        for kk in range(K + 1):
-            slot = kk % chunk
-            t_new = buf[slot].view(m, B)  # the recurrence writes straight into the buffer
-            if kk == 0:
-                t_new.copy_(v0)
-            elif kk == 1:
-                torch.addmm(v0, X2, v0, beta=0.0, alpha=0.5, out=t_new)  # X v0
-            else:
-                torch.addmm(t_prev, X2, t_cur, beta=-1.0, out=t_new)
-            t_prev, t_cur = t_cur, t_new
-            if slot == chunk - 1 or kk == K:
-                k0 = kk - slot
-                nact = int((last >= k0).sum())
-                acc[:nact].addmm_(coef_t[:nact, k0 : kk + 1], buf[: slot + 1])
-        out = torch.empty_like(acc)
-        out[torch.as_tensor(order, device=dev)] = acc
-        out = out.reshape(len(tj), m, B)
-        return out.permute(1, 2, 0)  # [m, B, Jc]
+        return chebyshev_columns(self._X2, self._a, red, tj, degrees, self.lambda_max)
 
     def _chebyshev_blocked(self, red, tj, degrees) -> torch.Tensor:
         block = _chebyshev_block(self._idx.size, len(tj), int(np.max(degrees)),
-                                 self.dtype.itemsize, self.block, CHEBYSHEV_BYTES)
+                                 self.dtype.itemsize, self.block,
+                                 chebyshev.CHEBYSHEV_BYTES)  # read now: tests lower it
         parts = []
         with _flush_denormal(self.dtype == torch.float32), threads(self.num_threads):
             for s in range(0, red.size, block):
@@ -815,17 +573,13 @@ class HeatKernel:
         t_all = self.times.numpy()
         with threads(self.num_threads):
             if spectral.any() and Bl:
-                phi = self._phi_torch(dt, dev)
-                lam = torch.as_tensor(self._lam, dtype=dt, device=dev)
-                ts = torch.as_tensor(t_all[spectral], dtype=dt, device=dev)
-                E = torch.exp(-ts[None, :] * lam[:, None])  # [k, Js]
-                coeff = phi[torch.as_tensor(red_live, device=dev)][:, :, None] * E[None]
-                # S-space: A^1/2 phi ... we build the final column directly below
-                spec = torch.einsum("mk,bkj->mbj", phi, coeff)  # k_t(p, x), [m, Bl, Js]
-                # convert to the S-space convention used by Chebyshev (times sqrt(a_x))
-                sq = torch.as_tensor(np.sqrt(self._a), dtype=dt, device=dev)
+                # in the S-space convention of the Chebyshev path (times sqrt(a_x))
                 colr[:, :, torch.as_tensor(np.flatnonzero(spectral), device=dev)] = (
-                    spec * sq[:, None, None]
+                    spectral_columns(self._phi_torch(dt, dev),
+                                     torch.as_tensor(self._lam, dtype=dt, device=dev),
+                                     torch.as_tensor(np.sqrt(self._a), dtype=dt, device=dev),
+                                     red_live, torch.as_tensor(t_all[spectral], dtype=dt,
+                                                               device=dev))
                 )
                 eta[:, spectral] = self._spectral_eta()[spectral][None, :]
         cheb = np.flatnonzero(~spectral)
@@ -978,26 +732,15 @@ class HeatKernel:
             return None if f is None else f[0] @ f[1]
 
     def _tail(self, js: np.ndarray, degrees: np.ndarray) -> np.ndarray:
-        out = np.empty(len(js))
-        for i, (j, d) in enumerate(zip(js, degrees, strict=True)):
-            c = float(self.times[j]) * self.lambda_max / 2.0
-            a = np.abs(chebyshev_coefficients(c, int(d) + int(12 * math.sqrt(c + 1)) + 40))
-            out[i] = a[int(d) + 1 :].sum()
-        return out
+        return np.array([chebyshev_tail(float(self.times[j]) * self.lambda_max / 2.0, int(d))
+                         for j, d in zip(js, degrees, strict=True)])
 
     def _norms(self, colr: torch.Tensor, red: np.ndarray) -> np.ndarray:
         """``sqrt(a_min a_p) ||c_hat||`` per (source, time), shape (B, J)."""
-        inv_sq = torch.as_tensor(1.0 / np.sqrt(self._a), dtype=colr.dtype, device=colr.device)
-        cn = torch.linalg.vector_norm(colr * inv_sq[:, None, None], dim=0)  # [B, J]
-        cn = cn.double().cpu().numpy()
-        return np.sqrt(self._a_min * self._a[red])[:, None] * cn
+        return column_norms(colr, self._a, self._a_min, red)
 
     def _certify(self, colr: torch.Tensor, red: np.ndarray, eta: np.ndarray) -> np.ndarray:
-        den = self._norms(colr, red) - eta
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b = np.where(den > 0, eta / den, np.inf)
-        b[eta == 0] = 0.0
-        return b
+        return relative_bound(self._norms(colr, red), eta)
 
     # ---------------------------------------------------------------------------------
     def hks(self) -> torch.Tensor:
