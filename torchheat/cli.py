@@ -877,30 +877,28 @@ def _own(category: type[Warning]) -> bool:
     return category.__module__.split(".")[0] == "torchheat"
 
 
-#: Warning texts printed by this process since :func:`main` started (each is printed once).
-_SHOWN: set[str] = set()
-
-
-def _showwarning(message, category, filename, lineno, file=None, line=None, *,
-                 own_only: bool = False) -> None:
-    """One line ``torchheat: warning: ...``, once per text; with ``own_only``, torchheat's
-    warnings only.
+class _WarningPrinter:
+    """``warnings.showwarning`` of one command: one line ``torchheat: warning: ...`` per
+    distinct text (a batch loads one target file for each of its pairs); with ``own_only``,
+    torchheat's warnings only.
 
     Library warnings (numpy, scipy, torch: ``FutureWarning`` about dtypes, torch's sparse
     "beta" notice, ...) say nothing a command-line user can act on. The eigensolve workers
-    are forked inside :func:`main`, so they inherit this function.
+    are forked inside :func:`main`, so they inherit the printer (and what it has shown).
     """
-    if own_only and not _own(category):
-        return
-    text = _one_line(str(message))
-    if text in _SHOWN:  # e.g. a batch loads one target file for each of its pairs
-        return
-    _SHOWN.add(text)
-    print(f"{PROG}: warning: {text}", file=sys.stderr if file is None else file)
 
+    def __init__(self, own_only: bool) -> None:
+        self.own_only = own_only
+        self.shown: set[str] = set()
 
-def _show_own_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    _showwarning(message, category, filename, lineno, file, line, own_only=True)
+    def __call__(self, message, category, filename, lineno, file=None, line=None) -> None:
+        if self.own_only and not _own(category):
+            return
+        text = _one_line(str(message))
+        if text in self.shown:
+            return
+        self.shown.add(text)
+        print(f"{PROG}: warning: {text}", file=sys.stderr if file is None else file)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -923,13 +921,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     1
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    _SHOWN.clear()
     with warnings.catch_warnings():
         try:
             if argv and argv[0] in _BATCH:  # torchheat.batch words its own warnings
-                warnings.showwarning = _showwarning
+                warnings.showwarning = _WarningPrinter(own_only=False)
                 return _cmd_batch(argv[0], argv[1:])
-            warnings.showwarning = _show_own_warning
+            warnings.showwarning = _WarningPrinter(own_only=True)
             args = build_parser().parse_args(argv)
             return int(args.func(args))
         except CLIError as exc:
