@@ -127,16 +127,20 @@ def test_cdist_memory_budget(p):
     rng = np.random.default_rng(5)
     X = torch.from_numpy(rng.standard_normal((60, 8)))
     Y = torch.from_numpy(rng.standard_normal((200, 8)))
-    d0, i0 = nearest_neighbors(X, Y, p=p, engine="cdist")
-    assert tm.LAST_CDIST_PEAK.block == (60, 200)  # one block under the default budget
+    stats = tm.CdistStats()
+    d0, i0 = nearest_neighbors(X, Y, p=p, engine="cdist", stats=stats)
+    assert stats.block == (60, 200)  # one block under the default budget
     # the peak counts at least the whole distance block
-    assert tm.LAST_CDIST_PEAK.peak_bytes >= 60 * 200 * 8
+    assert stats.peak_bytes >= 60 * 200 * 8
     budget = 4 * 2**10
-    d, i = nearest_neighbors(X, Y, p=p, engine="cdist", memory_bytes=budget)
-    peak = tm.LAST_CDIST_PEAK
+    peak = tm.CdistStats()
+    d, i = nearest_neighbors(X, Y, p=p, engine="cdist", memory_bytes=budget, stats=peak)
     assert 0 < peak.peak_bytes <= budget
     r, c = peak.block
     assert r * c * 8 <= budget and r * c < 60 * 200
+    # the deprecated global still reads the last search, with a warning
+    with pytest.warns(DeprecationWarning, match="stats=CdistStats"):
+        assert tm.LAST_CDIST_PEAK.block == peak.block
     torch.testing.assert_close(d, d0, rtol=1e-12, atol=0)
     assert torch.equal(i, i0)
     # the measured bookkeeping: the largest distance block of torch.cdist fits

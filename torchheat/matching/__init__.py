@@ -36,7 +36,7 @@ again get it passed in (the two ways of a piece get ``match``, the mirror partne
 from __future__ import annotations
 
 from .landmarks import dense_map, landmark_scores
-from .nn import LAST_CDIST_PEAK, nearest_neighbors
+from .nn import CdistStats, nearest_neighbors
 from .orientation import orientation_score
 from .pipeline import match
 from .prepared import PreparedShape, _check_matchable, prepare
@@ -53,6 +53,14 @@ __all__ = [
     "orientation_score",
     "match",
     "symmetry",
-    "LAST_CDIST_PEAK",
+    "CdistStats",
     "_check_matchable",
 ]
+
+
+def __getattr__(name: str):  # LAST_CDIST_PEAK: deprecated (nn.__getattr__ warns)
+    if name == "LAST_CDIST_PEAK":
+        from . import nn
+
+        return nn.__getattr__(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -19,8 +19,9 @@ __all__ = ["nearest_neighbors"]
 # nearest-neighbour engines
 # ------------------------------------------------------------------------------------------
 @dataclass
-class _Budget:
-    """Bookkeeping of the last cdist call: the largest working set of one block (bytes).
+class CdistStats:
+    """What one cdist search did (``nearest_neighbors(..., stats=CdistStats())`` fills it): its
+    block plan and the largest working set of one block (bytes).
 
     A block of ``r`` query rows against ``c`` reference rows (dimension ``d``, element size
     ``e``) holds the distance block ``r c e``, the ``min`` outputs ``r (e + 8)`` and, for
@@ -33,7 +34,18 @@ class _Budget:
     block: tuple[int, int] = (0, 0)
 
 
-LAST_CDIST_PEAK = _Budget()
+_LAST_CDIST = CdistStats()  # what the deprecated LAST_CDIST_PEAK reads
+
+
+def __getattr__(name: str) -> CdistStats:
+    if name == "LAST_CDIST_PEAK":
+        import warnings
+
+        warnings.warn("LAST_CDIST_PEAK is deprecated (a module global every call rewrites, not "
+                      "thread-safe): pass stats=CdistStats() to nearest_neighbors",
+                      DeprecationWarning, stacklevel=2)
+        return _LAST_CDIST
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 # Working-set budget (bytes) of one block of every blocked computation of matching: cdist
 # blocks, the candidates' heat-kernel columns of the landmark score, the cluster blocks of
@@ -95,7 +107,8 @@ def _plan_blocks(n: int, m: int, d: int, esize: int, euclid: bool,
 
 
 def _nn_cdist(
-    X: torch.Tensor, Y: torch.Tensor, p: float, memory_bytes: int
+    X: torch.Tensor, Y: torch.Tensor, p: float, memory_bytes: int,
+    stats: CdistStats | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Chunked exact NN with torch.cdist; a block's working set stays within ``memory_bytes``.
 
@@ -126,9 +139,9 @@ def _nn_cdist(
                 better = dmin < bd
                 bd.copy_(torch.where(better, dmin, bd))
                 bi.copy_(torch.where(better, i + c0, bi))
-    LAST_CDIST_PEAK.peak_bytes = peak
-    LAST_CDIST_PEAK.budget_bytes = int(memory_bytes)
-    LAST_CDIST_PEAK.block = (rows, cols)
+    for st in (_LAST_CDIST, stats):
+        if st is not None:
+            st.peak_bytes, st.budget_bytes, st.block = peak, int(memory_bytes), (rows, cols)
     return best_d, best_i
 
 
@@ -187,6 +200,7 @@ def nearest_neighbors(
     p: float = math.inf,
     engine: str = "auto",
     memory_bytes: int = WORK_BYTES,
+    stats: CdistStats | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact nearest neighbour in ``Y`` of every row of ``X`` under the Minkowski p-norm.
 
@@ -202,6 +216,9 @@ def nearest_neighbors(
         ``"auto"``: kdtree for CPU tensors with d <= 40, cdist otherwise.
     memory_bytes : int
         Budget of the cdist engine's distance blocks.
+    stats : CdistStats, optional
+        Filled by the cdist engine with its block plan and peak working set (untouched by
+        the k-d tree).
 
     Returns
     -------
@@ -219,7 +236,7 @@ def nearest_neighbors(
         raise ValueError(f"descriptor shapes {tuple(X.shape)} and {tuple(Y.shape)} do not match")
     engine = _resolve_engine(engine, X)
     if engine == "cdist":
-        return _nn_cdist(X, Y.to(X.dtype), p, memory_bytes)
+        return _nn_cdist(X, Y.to(X.dtype), p, memory_bytes, stats)
     if engine == "kdtree":
         return _tree_query(_kdtree(Y.detach().cpu().double().numpy()), X, p)
     raise ValueError(f"unknown engine {engine!r}; use 'auto', 'cdist' or 'kdtree'")
