@@ -396,6 +396,29 @@ def test_match_and_symmetry_take_dataset_shapes_and_pairs(tmp_path, monkeypatch)
         match(pair.source)
 
 
+def test_cached_eigenpairs_beyond_k_serve_fine_maps(tmp_path, monkeypatch):
+    """Preprocess(k=40) cached, prepared with k=30: the heat kernel is the 30-pair one and
+    match(fine_k=40) refines on the cached 40 without an eigensolve."""
+    from conftest import deformed_spheres
+
+    from torchheat import heat, match, prepare
+
+    files = deformed_spheres(tmp_path / "m", n=2)
+    shapes = ShapeCollection(files, preprocess=Preprocess(k=40), cache_dir=tmp_path / "c")
+    shapes.fill_cache()
+    calls = []
+    orig = heat.HeatKernel._eigensolve
+    monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
+                        lambda self, k: calls.append(k) or orig(self, k))
+    S, T = prepare(shapes[0], k=30), prepare(shapes[1], k=30)
+    assert S.hk.k == 30 and S.caches.basis.shape == (S.n, 40)
+    assert torch.equal(S.caches.basis, shapes[0].data["eigenvectors"].double())
+    c = match(S, T, fine_k=40)
+    assert c.map.shape == (S.n,) and "fine_map" in c.info["timings"]
+    assert calls == []  # the 40 modes came from the cache
+    assert prepare(shapes[0]).caches.basis is None  # all 40 in the heat kernel: nothing more
+
+
 def test_ordered_pairs_and_fill_cache(tmp_path):
     from conftest import deformed_spheres
 

@@ -239,7 +239,9 @@ def match(
         further, to ``fine_k`` eigenmodes (e.g. 200; ``torchheat match --fine``): ZoomOut on
         ``10 fine_k`` farthest-point rows mapped to every target vertex, then the dense map
         (:func:`~torchheat.matching.zoomout.fine_map`). The shapes' extra eigenpairs are solved
-        once per prepared shape when they hold fewer; the choice of the map is unchanged. TOSCA
+        once per prepared shape when they hold fewer (a dataset shape cached with
+        ``Preprocess(k=200)`` and prepared with ``k=100`` has them: no eigensolve); the choice
+        of the map is unchanged. TOSCA
         5k, 16 pairs (two per class): mean eps 0.0144 -> 0.0118 at 200 modes, for about 0.5 s
         per pair plus 0.5 s per shape's eigensolve (RESULTS.md, nineteenth session). Default
         None: the maps stay at the choice's size.

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from .._arrays import to_numpy
 from ..descriptors import (
     farthest_point_sampling,
     feature_points,
@@ -268,7 +269,8 @@ def prepare(
         Cap on the number of feature points (strongest first).
     k : int, optional
         Eigenpairs of the heat kernel's eigenbasis (default 100; for a dataset shape with
-        cached data: the cached ones; fewer: the first ``k`` of them, more: a new eigensolve).
+        cached data: the cached ones; fewer: the first ``k`` of them, the rest kept for
+        ``match(fine_k=...)``; more: a new eigensolve).
     rtol, num_threads
         Passed to :class:`HeatKernel`.
     kind, boundary : str, optional
@@ -312,10 +314,12 @@ def prepare(
     100
     """
     t0 = time.perf_counter()
+    cached = None  # a dataset shape's cached eigenpairs, when the heat kernel uses them
     if is_cached_shape(mesh):
         shape, mesh = mesh, mesh.mesh
         if hk is None and eigenpairs is None and shape.data is not None:
             hk = _cached_heat_kernel(shape, times, k, rtol, kind, boundary, num_threads)
+            cached = (shape.data["eigenvalues"], shape.data["eigenvectors"])
     elif not isinstance(mesh, Mesh):
         raise TypeError(f"expected a Mesh or a dataset Shape, got {type(mesh).__name__}")
     k = DEFAULT_EIGENPAIRS if k is None else k
@@ -342,9 +346,14 @@ def prepare(
     feats = feature_points(mesh, sig, rings=2, max_features=max_features)
     normals = _vertex_normals(mesh)
     t2 = time.perf_counter()
-    return PreparedShape(mesh, hk, feats, normals,
-                         {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
-                         own_times=hk.times.clone())
+    out = PreparedShape(mesh, hk, feats, normals,
+                        {"heat_kernel": t1 - t0, "descriptors": t2 - t1},
+                        own_times=hk.times.clone())
+    if cached is not None and len(cached[0]) > hk.eigenvalues.numel():
+        # more cached than the heat kernel uses (Preprocess(k=200), prepare(k=100)): kept
+        # for match(fine_k=...), which then solves nothing
+        offer_basis(out, to_numpy(cached[0]), to_numpy(cached[1]))
+    return out
 
 
 def _cached_heat_kernel(shape: CachedShape, times: Any, k: int | None, rtol: float,
