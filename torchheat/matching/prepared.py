@@ -59,7 +59,8 @@ class ShapeCaches:
         ``partial_scale.offer_filled``); the filled way prepares the closed piece with them.
     basis : torch.Tensor or None, float64, shape (n, K)
         An eigenbasis larger than the heat kernel's (:func:`_basis`: ``match(fine_k=K)``'s
-        last ZoomOut), solved once per shape.
+        last ZoomOut): solved once per shape, or offered (:func:`offer_basis`) by the command
+        line's background workers or a dataset cache holding more eigenpairs.
     """
 
     fps: torch.Tensor | None = None

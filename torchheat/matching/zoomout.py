@@ -14,7 +14,8 @@ an isometry does not converge to a good alignment (its residual stays high), whi
 Cost per step: a ``k x k`` least-squares solve on ``s`` source samples and an exact
 nearest-neighbour search of ``s`` queries among ``m`` targets in ``k`` dimensions (one GEMM,
 ``O(s m k)``); the dense map at the end is one exact cluster-pruned search over all ``n``
-source vertices (:func:`~torchheat.matching.nn._nn_factors_pruned`).
+source vertices (:func:`~torchheat.matching.nn._nn_factors_pruned`). :func:`fine_map` refines a
+chosen map further on a larger eigenbasis (``match(fine_k=...)``).
 """
 
 from __future__ import annotations
@@ -324,8 +325,9 @@ def fine_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor, k: int,
     -----
     Cost beyond the two eigensolves: ``sum_k O(s m k)`` for ``s = FINE_ROWS_PER_MODE * k`` rows
     and the final exact ``n x m`` search in ``k`` dimensions (float32, certified:
-    :func:`~.nn._argmin_certified`): about 0.5 s for 100 -> 200 modes at 5k vertices (one
-    thread); the eigensolves cost about 0.5 s more per shape than the default 100.
+    :func:`~.nn._argmin_certified`): about 0.6 s for 100 -> 200 modes at 5k vertices, 2.4 s
+    at 12.5k (one thread); the 200-mode eigensolves about 0.55 s per 5k shape, 1.6 s per 12.5k
+    (``scripts/bench.py fine``, BENCHMARKS.md).
 
     Examples
     --------
