@@ -385,6 +385,9 @@ def _cmd_match(args: argparse.Namespace) -> int:
     if args.landmarks > 1 and method == "refine":
         print(f"{PROG}: note: --landmarks {args.landmarks} is used by method 'paper' only; "
               "method 'refine' places its own landmarks", file=sys.stderr)
+    if args.fine is not None and (args.partial or not args.zoomout or method == "paper"):
+        raise CLIError("--fine refines the default pipeline's spectral maps of whole shapes: "
+                       "drop --partial, --no-zoomout and --method paper to use it")
 
     t_start = time.perf_counter()
     (source, target), (ps, pt), landmark, t_prep = _load_and_prepare(
@@ -398,9 +401,6 @@ def _cmd_match(args: argparse.Namespace) -> int:
         raise CLIError("--partial-margin needs --partial")
     if args.partial_scale is not None and not args.partial:
         raise CLIError("--partial-scale needs --partial")
-    if args.fine is not None and (args.partial or not args.zoomout or method == "paper"):
-        raise CLIError("--fine refines the default pipeline's spectral maps of whole shapes: "
-                       "drop --partial, --no-zoomout and --method paper to use it")
     part_kw: dict[str, Any] = {"partial": True} if args.partial else {}
     if args.partial_scale is not None:
         part_kw["partial_scale"] = args.partial_scale
@@ -461,6 +461,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
 def _cmd_symmetry(args: argparse.Namespace) -> int:
     out = _check_output(Path(args.output), "map")
     png = _check_output(Path(args.png), "PNG") if args.png else None
+    if args.fine is not None and not args.zoomout:
+        raise CLIError("--fine refines the spectral self-map: drop --no-zoomout to use it")
     t_start = time.perf_counter()
     (mesh,), (shape,), landmark, t_prep = _load_and_prepare(
         [args.mesh], args,
