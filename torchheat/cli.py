@@ -43,6 +43,8 @@ __all__ = ["main", "run", "build_parser", "write_map", "CLIError"]
 
 PROG = "torchheat"
 DATA = Path(__file__).resolve().parent / "data"
+#: ``--fine``'s default size (``match(fine_k=...)``; RESULTS.md, nineteenth session)
+FINE_K = 200
 
 
 class CLIError(Exception):
@@ -952,8 +954,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 1
 
 
-#: ``--fine``'s default size (``match(fine_k=...)``; RESULTS.md, nineteenth session)
-FINE_K = 200
 _FAST_EXIT = ("match", "symmetry", "demo")
 _BATCH = ("evaluate", "preprocess")
 

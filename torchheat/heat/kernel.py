@@ -435,8 +435,12 @@ class HeatKernel:
     @property
     def eigenvectors(self) -> torch.Tensor:
         """Mass-orthonormal eigenfunctions on all vertices, shape (n, k)."""
-        phi = np.zeros((self.n, self._phi_red.shape[1]))
-        phi[self._idx] = self._phi_red
+        return self._on_all_vertices(self._phi_red)
+
+    def _on_all_vertices(self, phi_red: np.ndarray) -> torch.Tensor:
+        """Reduced eigenvectors (free vertices) on all vertices, zero on Dirichlet ones."""
+        phi = np.zeros((self.n, phi_red.shape[1]))
+        phi[self._idx] = phi_red
         return torch.from_numpy(phi)
 
     def eigenpairs(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -474,9 +478,8 @@ class HeatKernel:
         if k <= self._lam.size:
             return torch.from_numpy(self._lam[:k].copy()), self.eigenvectors[:, :k]
         lam, phi_red = self._eigensolve(k)
-        phi = np.zeros((self.n, phi_red.shape[1]))
-        phi[self._idx] = phi_red
-        return torch.from_numpy(np.asarray(lam, dtype=np.float64)), torch.from_numpy(phi)
+        return (torch.from_numpy(np.asarray(lam, dtype=np.float64)),
+                self._on_all_vertices(phi_red))
 
     @property
     def vertex_mass(self) -> torch.Tensor:
