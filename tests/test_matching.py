@@ -749,6 +749,65 @@ def test_reoriented_option_reaches_the_choice(mirror_pair, monkeypatch):
     assert not on.quality.ambiguous
 
 
+def test_polished_candidates_keep_their_map_and_lose_their_noise(mirror_pair):
+    """Polishing cleans a candidate without changing which map it is: the right map and its
+    exact mirror, each with a quarter of its rows sent to random vertices, come back as
+    themselves on >= 98 % of the rows; a copy of a polished map is dropped; a candidate
+    outside the clear margin is left as it was."""
+    from types import SimpleNamespace
+
+    from torchheat.matching import select
+    from torchheat.matching.prepared import _fps
+    from torchheat.matching.refine import _Refiner
+
+    S, T, perm, mp = mirror_pair
+    samples = _fps(S, 48)
+    rows = _fps(S, 500)
+    rows = torch.cat([samples, rows[~torch.isin(rows, samples)]])  # samples first
+    at = torch.arange(samples.numel())
+    refiner = _Refiner(S, T, samples)
+    rng = np.random.default_rng(0)
+
+    def noisy(images: torch.Tensor) -> torch.Tensor:
+        out = images.clone()
+        bad = torch.from_numpy(rng.random(images.numel()) < 0.25)
+        out[bad] = torch.from_numpy(rng.integers(0, T.n, int(bad.sum())))
+        return out
+
+    truth, mirror = torch.as_tensor(perm)[rows], torch.as_tensor(perm[mp])[rows]
+    right, copy = noisy(truth), None
+    cands = [{"s": 0.0, "zo": SimpleNamespace(images=right)},
+             {"s": 0.1, "zo": SimpleNamespace(images=noisy(mirror))},
+             {"s": 0.2, "zo": SimpleNamespace(images=right.clone())},  # the same map again
+             {"s": select._CLEAR_MARGIN + 0.01, "zo": SimpleNamespace(images=noisy(mirror))}]
+    copy, far = cands[2], cands[3]
+    far_zo = far["zo"]
+    out = select._polish_candidates(
+        S, T, rows, at, samples, cands, lambda r: r["s"],
+        lambda g0: refiner.augment(g0, samples, 3)[1], 60, _fps(T, 2000), lambda im: 0.0)
+    assert copy not in out and len(out) == 3
+    assert out[0]["polished"] and out[1]["polished"] and "polished" not in far
+    assert far["zo"] is far_zo
+    assert float((out[0]["zo"].images == truth).double().mean()) >= 0.98
+    assert float((out[1]["zo"].images == mirror).double().mean()) >= 0.98
+    assert float((right == truth).double().mean()) < 0.8  # they were noisy
+    assert torch.equal(out[0]["g"], out[0]["zo"].images[at])
+
+
+def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
+    S, T, perm, _ = mirror_pair
+    calls = _spy(monkeypatch, "_polish_candidates", 5)
+    on = match(S, T, staged=False)
+    assert len(calls) == 1 and calls[0] >= 1
+    assert any(d[8] for d in on.info["zoomout_candidates"])  # some candidate polished
+    off = match(S, T, staged=False, polished=False)
+    assert len(calls) == 1  # not called again
+    assert not any(d[8] for d in off.info["zoomout_candidates"])
+    assert float((on.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    staged = match(S, T)  # an exact copy: the first stage is clear, nothing is polished
+    assert staged.info["search"] == "first stage" and len(calls) == 1
+
+
 def test_clear_needs_a_margin_and_a_direct_orientation():
     from torchheat.matching.select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
 

@@ -180,9 +180,13 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
     assert (m2 == perm.numpy()).mean() >= 0.99
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m5.txt"), "--no-staged",
                  "--report", str(rep), "--threads", "1"]) == 0
-    assert json.loads(rep.read_text())["search"] == "full"
+    r5 = json.loads(rep.read_text())
+    assert r5["search"] == "full" and "zoomout_polish" in r5["timings"]
     m5 = np.loadtxt(tmp_path / "m5.txt", dtype=np.int64)
     assert (m5 == perm.numpy()).mean() >= 0.99
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m6.txt"), "--no-staged",
+                 "--no-polished", "--report", str(rep), "--threads", "1"]) == 0
+    assert "zoomout_polish" not in json.loads(rep.read_text())["timings"]
 
 
 def test_symmetry_quality_expects_a_reversing_map():

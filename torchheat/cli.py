@@ -414,7 +414,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
                  fine_k=args.fine,
                  descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
-                 reoriented=args.reoriented, staged=args.staged, **part_kw)
+                 reoriented=args.reoriented, polished=args.polished, staged=args.staged,
+                 **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -793,6 +794,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave out the reoriented twins of the best-aligned ZoomOut candidates "
                         "(each re-fitted as an orientation-preserving functional map that keeps "
                         "where its points go) and the tear term of the ZoomOut score")
+    m.add_argument("--no-polished", dest="polished", action="store_false",
+                   help="choose among the ZoomOut candidates as they are; by default, when the "
+                        "full search runs, the candidates within the clear margin of the best "
+                        "are refined again before the choice (each distinct map's sample "
+                        "images: correspondence augmentation, then ZoomOut)")
     m.add_argument("--no-staged", dest="staged", action="store_false",
                    help="search from all 8 seeding source features at once; by default the "
                         "hypotheses of the first 3 are tried first and their choice is kept "

@@ -39,3 +39,4 @@ class _Options:
     descriptor_seed: bool = True
     trimmed_twins: bool = True
     reoriented: bool = True
+    polished: bool = True  # _spectral_choice polishes the candidates of an unclear choice

@@ -321,8 +321,10 @@ def _match_filled(source: Mesh | PreparedShape, target: Mesh | PreparedShape, kw
     # david_10 97 -> 13 %), whose patches are not part of the whole's surface; no staged
     # search: its gate was set on whole shapes, and on closed pieces it kept wrong first-stage
     # choices (cuts 81.9 -> 81.4 %, dog_10 100 -> 63 %; holes 82.0 -> 81.6 %; twelfth session)
+    # no polished candidates either: measured, they hurt too (cuts 81.8 -> 81.2 %; twentieth
+    # session)
     full = match_fn(fsrc, tgt, **{**kw, "partial": False, "trimmed_twins": False,
-                                   "staged": False})
+                                   "staged": False, "polished": False})
     n = src.n
     info = full.info
     if info.get("p") is not None and info["p"] >= n:

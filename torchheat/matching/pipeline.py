@@ -106,6 +106,7 @@ def match(
     descriptor_seed: bool = True,
     trimmed_twins: bool = True,
     reoriented: bool = True,
+    polished: bool = True,
     staged: bool = True,
     partial: bool = False,
     partial_margin: float = PARTIAL_MARGIN,
@@ -262,6 +263,15 @@ def match(
         images are torn apart (``select._Tear``: a map with two parts swapped). TOSCA 284
         pairs: 97.8 -> 98.8 % under 0.25, mean 0.036 -> 0.028 (RESULTS.md, eleventh
         session; ``--no-reoriented``).
+    polished : bool
+        (``zoomout=True``, two whole shapes) When the full search runs (the first stage's
+        choice was not clear, or ``staged=False``), polish the ZoomOut candidates whose score
+        is within 0.75 of the best before choosing: each distinct map goes through the
+        hypotheses' refinement again (its sample images, correspondence augmentation) and
+        a new ZoomOut, so that a right map caught in a poor ZoomOut minimum is scored by its
+        clean form (``select._polish_candidates``). TOSCA 284 pairs: 98.5 -> 99.3 % under
+        0.25 (the three michael half-turns right), SCAPE 50: see RESULTS.md, twentieth
+        session; ``--no-polished``.
     staged : bool
         (``zoomout=True``, automatic landmark, two whole shapes) Search in two stages: first
         the hypotheses of the first 3 seeding source features alone (the strongest, then
@@ -470,6 +480,7 @@ def match(
                 zoomout_hypotheses=zoomout_hypotheses, fine_k=fine_k,
                 descriptor_seed=descriptor_seed,
                 trimmed_twins=trimmed_twins, reoriented=reoriented,
+                polished=polished and unit_ratio is None,  # not measured on pieces
                 partial_ratio=None if part is None else part.ratio)
             out, search = None, "full"
             # refined hypotheses and ZoomOuts, shared by the two stages; the k-d trees
@@ -482,7 +493,8 @@ def match(
                 first = dataclasses.replace(
                     opts, source_landmarks=_FIRST_STAGE_SEEDS,
                     refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
-                    zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses))
+                    zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses),
+                    polished=False)
                 out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings,
                               memo)
                 timings["first_stage"] = time.perf_counter() - t_q
@@ -721,7 +733,9 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         direct, sym, zo_diag = _spectral_choice(
             src, tgt, samples, good, opt, timings,
             lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
-                                            opt.refine_log_floor), memo)
+                                            opt.refine_log_floor), memo,
+            polish=(lambda g0: refiner.augment(g0, samples, opt.refine_iterations)[1])
+            if opt.polished else None)
     else:
         descr = [r for r in good if not r["lms0"]] if opt.partial_ratio is not None else []
         if descr and len(good) > 1:
