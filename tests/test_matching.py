@@ -794,6 +794,35 @@ def test_polished_candidates_keep_their_map_and_lose_their_noise(mirror_pair):
     assert torch.equal(out[0]["g"], out[0]["zo"].images[at])
 
 
+def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
+    """Of two candidate maps, the tie-break keeps the one that preserves the wave kernel
+    signatures: the right map of an asymmetric shape against the right map followed by the
+    target's antipodal map (not an isometry), whichever of the two was chosen."""
+    from types import SimpleNamespace
+
+    from torchheat.matching import select
+    from torchheat.matching.prepared import _fps
+
+    S, T, perm = asym_pair
+    rows = _fps(S, 300)
+    W, _ = T.mesh.numpy()
+    c = W.mean(axis=0)
+    antipode = torch.from_numpy(cKDTree(W).query(2 * c - W)[1])
+    right_im = torch.as_tensor(perm)[rows]
+    assert float((antipode[right_im] == right_im).double().mean()) < 0.05
+    for first in ("right", "wrong"):
+        right = {"zo": SimpleNamespace(images=right_im)}
+        wrong = {"zo": SimpleNamespace(images=antipode[right_im])}
+        chosen, rival = (right, wrong) if first == "right" else (wrong, right)
+        chosen.update(zo_margin=0.05, zo_rival=rival)
+        out = select._descriptor_tie_break(S, T, rows, chosen)
+        assert out is right and out["zo_margin"] == 0.05
+        e_right, e_wrong = out["zo_tie_break"]
+        assert e_right < 1e-6 < 0.1 < e_wrong  # an exact isometric copy: only rounding
+        if first == "wrong":
+            assert out["zo_rival"] is wrong
+
+
 def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
     S, T, perm, _ = mirror_pair
     calls = _spy(monkeypatch, "_polish_candidates", 5)

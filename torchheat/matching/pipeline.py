@@ -228,7 +228,10 @@ def match(
         best-aligned get a reoriented twin (``reoriented``); the direct
         map is the one minimising ``log(residual) + 10 tear - orientation_weight *
         min(orientation, 0.6)`` (orientation read on the ZoomOut map, where it is clear:
-        +-0.7..0.95; ``tear`` only with ``reoriented``), the
+        +-0.7..0.95; ``tear`` only with ``reoriented``) — where the best different whole
+        map scores within 0.15 of it (an ambiguous choice), whichever of the two better keeps
+        the wave kernel signatures (``select._descriptor_tie_break``; ``info["tie_break"]``:
+        the errors of the chosen map and of its rival) — the
         symmetric map the best orientation-reversing one; both are then refined to
         ``zoomout_k`` modes (default: all eigenpairs of the shapes) and made dense from the
         functional map. False: the
@@ -537,6 +540,8 @@ def match(
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "fine_k": fine_k,
+              # an ambiguous choice's descriptor errors (chosen, rival; _descriptor_tie_break)
+              "tie_break": direct.get("zo_tie_break") if method == "refine" else None,
               "hypothesis_images": hyp_images, "refine_samples": samples, "search": search,
               "zoomout_candidates": zo_diag,
               "sym_orientation": None if sym is None else sym.get("orientation"),
