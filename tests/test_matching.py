@@ -7,6 +7,7 @@ exact answer) and the known mirror permutation of a mesh symmetric under y -> -y
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -821,6 +822,11 @@ def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
         assert e_right < 1e-6 < 0.1 < e_wrong  # an exact isometric copy: only rounding
         if first == "wrong":
             assert out["zo_rival"] is wrong
+    # a match reports it (None unless its choice was ambiguous), JSON-able in its report
+    corr = match(S, T)
+    assert corr.info["tie_break"] is None and "tie_break" not in corr.report()
+    corr.info["tie_break"] = (0.01, 0.02)
+    assert json.loads(json.dumps(corr.report()))["tie_break"] == [0.01, 0.02]
 
 
 def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):

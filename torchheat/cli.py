@@ -352,6 +352,10 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
                     if q.ambiguous else "clear")
             print(f"margin of the choice: {q.margin:.2f} ({note}; the best rival scored that "
                   "much worse; --rival-out writes it)")
+            tb = corr.info.get("tie_break")
+            if tb:
+                print(f"settled by the wave kernel signatures: mean log-WKS error {tb[0]:.4f} "
+                      f"against the rival's {tb[1]:.4f}")
     timings = corr.info.get("timings", {})
     if timings:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))

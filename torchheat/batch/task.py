@@ -203,6 +203,7 @@ tosca_remeshed_5k_symmetry`).
         "margin": None if quality is None else quality.margin,
         "ambiguous": None if quality is None else bool(quality.ambiguous),
         "search": corr.info.get("search"),
+        "tie_break": corr.info.get("tie_break"),
     }
     if quality is not None and quality.ambiguous and corr.has_rival_map:
         # the map the choice passed over, scored like the direct map (only where the choice

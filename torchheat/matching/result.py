@@ -127,8 +127,9 @@ class Correspondence:
 
     def report(self) -> dict:
         """A JSON-able summary: vertex counts, method, the search that gave the map
-        (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), landmarks, orientation,
-        quality, suspect, timings (what ``torchheat match --report`` writes, with the file
+        (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), the tie-break of an
+        ambiguous choice (``[chosen error, rival error]``), landmarks, orientation, quality,
+        suspect, timings (what ``torchheat match --report`` writes, with the file
         names)."""
         q = self.quality
         o = self.orientation
@@ -140,6 +141,9 @@ class Correspondence:
             "zoomout": self.info.get("zoomout"),
             "fine_k": self.info.get("fine_k"),
             **({"search": self.info["search"]} if self.info.get("search") else {}),
+            # an ambiguous choice: wave kernel signature errors of the map and of its rival
+            **({"tie_break": [float(e) for e in self.info["tie_break"]]}
+               if self.info.get("tie_break") else {}),
             "landmarks": [[int(a), int(b)] for a, b in self.landmarks],
             "orientation": None if o != o else float(o),
             **({} if q is None else q.as_dict()),
