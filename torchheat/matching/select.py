@@ -6,8 +6,10 @@ the mirror partners of the orientation-reversing ones (``sigma_N o T``, ``sigma_
 intrinsic symmetry, given by the caller), by the landmark-free descriptor map (:mod:`.fmap`)
 by the orientation-trimmed twin of every orientation-preserving candidate
 (:func:`_trimmed_candidates`) and by the reoriented twin of the best-aligned ones
-(:func:`_reoriented_candidates`); ``log(residual) + tear - orientation_weight * orientation``
-decides (:class:`_Tear`: parts torn apart).
+(:func:`_reoriented_candidates`); in the full search the candidates near the best are polished
+(:func:`_polish_candidates`); ``log(residual) + tear - orientation_weight * orientation``
+decides (:class:`_Tear`: parts torn apart), and an ambiguous decision goes to the map that better
+keeps the wave kernel signatures (:func:`_descriptor_tie_break`).
 The chosen maps are refined to every mode and made dense when first asked for.
 """
 
@@ -112,7 +114,10 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     residuals 1.2-1.5x apart). The orientation test, read on the ZoomOut map of the 1000
     samples (+-0.7..0.95 instead of +-0.1..0.5 on the 48-sample maps of humans), tells the
     direct map from the mirror one. Score: ``log(residual) -+ orientation_weight *
-    orientation``.
+    orientation``. ``polish`` (the full search): the hypotheses' refinement of sample images,
+    applied to the candidates near the best before the choice (:func:`_polish_candidates`).
+    A choice within ``quality.AMBIGUOUS_BELOW`` of its rival is settled by
+    :func:`_descriptor_tie_break`.
     """
     t0 = time.perf_counter()
     Vs, _ = src.mesh.numpy()
