@@ -829,6 +829,24 @@ def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
     assert json.loads(json.dumps(corr.report()))["tie_break"] == [0.01, 0.02]
 
 
+def test_tie_break_option_reaches_ambiguous_choices(mirror_pair, monkeypatch):
+    """Every choice made ambiguous (the clear-choice gap widened past any margin): the
+    tie-break runs on the choice unless ``tie_break=False``."""
+    from torchheat.matching import quality, select
+
+    S, T, perm, _ = mirror_pair
+    monkeypatch.setattr(select, "AMBIGUOUS_BELOW", 1e9)
+    calls = _spy(monkeypatch, "_descriptor_tie_break", 3)
+    on = match(S, T, staged=False)
+    assert len(calls) == 1 and on.info["tie_break"] is not None
+    e_kept, e_other = on.info["tie_break"]
+    assert e_kept <= e_other
+    assert float((on.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    off = match(S, T, staged=False, tie_break=False)
+    assert len(calls) == 1 and off.info["tie_break"] is None
+    assert quality.AMBIGUOUS_BELOW == 0.15  # the report's flag is not touched
+
+
 def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
     S, T, perm, _ = mirror_pair
     calls = _spy(monkeypatch, "_polish_candidates", 5)

@@ -187,6 +187,9 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m6.txt"), "--no-staged",
                  "--no-polished", "--report", str(rep), "--threads", "1"]) == 0
     assert "zoomout_polish" not in json.loads(rep.read_text())["timings"]
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m7.txt"), "--no-tie-break",
+                 "--report", str(rep), "--threads", "1"]) == 0
+    assert (np.loadtxt(tmp_path / "m7.txt", dtype=np.int64) == perm.numpy()).mean() >= 0.99
 
 
 def test_symmetry_quality_expects_a_reversing_map():

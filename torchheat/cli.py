@@ -418,8 +418,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
                  fine_k=args.fine,
                  descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
-                 reoriented=args.reoriented, polished=args.polished, staged=args.staged,
-                 **part_kw)
+                 reoriented=args.reoriented, polished=args.polished,
+                 tie_break=args.tie_break, staged=args.staged, **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -803,6 +803,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "full search runs, the candidates within the clear margin of the best "
                         "are refined again before the choice (each distinct map's sample "
                         "images: correspondence augmentation, then ZoomOut)")
+    m.add_argument("--no-tie-break", dest="tie_break", action="store_false",
+                   help="keep an ambiguous choice as the ZoomOut score made it; by default the "
+                        "chosen map or its rival, whichever better keeps the wave kernel "
+                        "signatures, is kept")
     m.add_argument("--no-staged", dest="staged", action="store_false",
                    help="search from all 8 seeding source features at once; by default the "
                         "hypotheses of the first 3 are tried first and their choice is kept "

@@ -40,3 +40,4 @@ class _Options:
     trimmed_twins: bool = True
     reoriented: bool = True
     polished: bool = True  # _spectral_choice polishes the candidates of an unclear choice
+    tie_break: bool = True  # an ambiguous choice goes by the wave kernel signatures

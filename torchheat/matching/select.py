@@ -186,7 +186,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         direct, cands + before, lambda r: r["zo_score"] if "zo_score" in r else score(r, 1.0),
         tgt)
     direct["zo_margin"] = None if margin is None else max(margin, 0.0)
-    if (_TIE_BREAK and direct["zo_rival"] is not None
+    if (opt.tie_break and direct["zo_rival"] is not None
             and direct["zo_margin"] < AMBIGUOUS_BELOW):
         direct = _descriptor_tie_break(src, tgt, rows, direct)
     rest = [r for r in cands if r is not direct
@@ -351,9 +351,6 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     return [r for r in cands if id(r) not in dropped]
 
 
-#: ``_spectral_choice``: an ambiguous choice (margin < ``quality.AMBIGUOUS_BELOW``) goes to
-#: whichever of the chosen map and its rival better keeps the shapes' wave kernel signatures
-_TIE_BREAK = True
 _TIE_ENERGIES = 16  # log-spaced WKS energies of the tie-break
 
 
