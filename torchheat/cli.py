@@ -46,6 +46,33 @@ DATA = Path(__file__).resolve().parent / "data"
 #: ``--fine``'s default size (``match(fine_k=...)``; RESULTS.md, nineteenth session)
 FINE_K = 200
 
+#: ``torchheat match``'s switches that turn off one stage of the default choice: (flag,
+#: ``match`` keyword, help)
+_CHOICE_SWITCHES = (
+    ("--no-descriptor-seed", "descriptor_seed",
+     "leave out the landmark-free hypothesis (a functional map of the shapes' wave kernel "
+     "signatures with the orientation-preserving term) from the ZoomOut choice; with "
+     "--partial, the partial functional map that seeds and scores the piece's hypotheses"),
+    ("--no-trimmed-twins", "trimmed_twins",
+     "leave out the orientation-trimmed twins of the ZoomOut candidates (each re-seeded from "
+     "its samples whose neighbourhood keeps the orientation)"),
+    ("--no-reoriented", "reoriented",
+     "leave out the reoriented twins of the best-aligned ZoomOut candidates (each re-fitted as "
+     "an orientation-preserving functional map that keeps where its points go) and the tear "
+     "term of the ZoomOut score"),
+    ("--no-polished", "polished",
+     "choose among the ZoomOut candidates as they are; by default, when the full search runs, "
+     "the candidates within the clear margin of the best are refined again before the choice "
+     "(each distinct map's sample images: correspondence augmentation, then ZoomOut)"),
+    ("--no-tie-break", "tie_break",
+     "keep an ambiguous choice as the ZoomOut score made it; by default the chosen map or its "
+     "rival, whichever better keeps the wave kernel signatures, is kept"),
+    ("--no-staged", "staged",
+     "search from all 8 seeding source features at once; by default the hypotheses of the "
+     "first 3 are tried first and their choice is kept when it is clear (margin and "
+     "orientation), which saves much of the match time on most pairs"),
+)
+
 
 class CLIError(Exception):
     """A user error the CLI reports in one line (exit status 1)."""
@@ -417,9 +444,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
                  fine_k=args.fine,
-                 descriptor_seed=args.descriptor_seed, trimmed_twins=args.trimmed_twins,
-                 reoriented=args.reoriented, polished=args.polished,
-                 tie_break=args.tie_break, staged=args.staged, **part_kw)
+                 **{dest: getattr(args, dest) for _, dest, _ in _CHOICE_SWITCHES},
+                 **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
     if sym_out is not None:
         corr.symmetric_map  # noqa: B018
@@ -785,33 +811,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write a colour-transfer picture of the map (of the matched "
                         "components with --largest-component)")
     _add_refinement(m)
-    m.add_argument("--no-descriptor-seed", dest="descriptor_seed", action="store_false",
-                   help="leave out the landmark-free hypothesis (a functional map of the "
-                        "shapes' wave kernel signatures with the orientation-preserving term) "
-                        "from the ZoomOut choice; with --partial, the partial functional map "
-                        "that seeds and scores the piece's hypotheses")
-    m.add_argument("--no-trimmed-twins", dest="trimmed_twins", action="store_false",
-                   help="leave out the orientation-trimmed twins of the ZoomOut candidates "
-                        "(each re-seeded from its samples whose neighbourhood keeps the "
-                        "orientation)")
-    m.add_argument("--no-reoriented", dest="reoriented", action="store_false",
-                   help="leave out the reoriented twins of the best-aligned ZoomOut candidates "
-                        "(each re-fitted as an orientation-preserving functional map that keeps "
-                        "where its points go) and the tear term of the ZoomOut score")
-    m.add_argument("--no-polished", dest="polished", action="store_false",
-                   help="choose among the ZoomOut candidates as they are; by default, when the "
-                        "full search runs, the candidates within the clear margin of the best "
-                        "are refined again before the choice (each distinct map's sample "
-                        "images: correspondence augmentation, then ZoomOut)")
-    m.add_argument("--no-tie-break", dest="tie_break", action="store_false",
-                   help="keep an ambiguous choice as the ZoomOut score made it; by default the "
-                        "chosen map or its rival, whichever better keeps the wave kernel "
-                        "signatures, is kept")
-    m.add_argument("--no-staged", dest="staged", action="store_false",
-                   help="search from all 8 seeding source features at once; by default the "
-                        "hypotheses of the first 3 are tried first and their choice is kept "
-                        "when it is clear (margin and orientation), which saves much of the "
-                        "match time on most pairs")
+    for flag, dest, text in _CHOICE_SWITCHES:
+        m.add_argument(flag, dest=dest, action="store_false", help=text)
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "

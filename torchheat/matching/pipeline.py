@@ -505,7 +505,8 @@ def match(
                     opts, source_landmarks=_FIRST_STAGE_SEEDS,
                     refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
                     zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses),
-                    polished=False)
+                    # an ambiguous first stage is never clear: the full search decides
+                    polished=False, tie_break=False)
                 out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings,
                               memo)
                 timings["first_stage"] = time.perf_counter() - t_q

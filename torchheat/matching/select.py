@@ -170,13 +170,15 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             cands += _reoriented_candidates(src, tgt, rows, at, cands, k_sel, targets, orient,
                                             tear, memo)
             timings["zoomout_reorient"] = time.perf_counter() - t_r
-        before: list[dict] = []  # the candidates as they were, each with its score
+        before: list[dict] = []  # candidates polishing changed or dropped, as they were
         if polish is not None and at is not None:
             t_p = time.perf_counter()
             before = [{**r, "zo_score": score(r, 1.0)} for r in cands]
             cands = _polish_candidates(src, tgt, rows, at, samples, cands,
                                        lambda r: score(r, 1.0), polish, k_sel, targets,
                                        orient, memo)
+            kept = {id(r["zo"]) for r in cands}
+            before = [b for b in before if id(b["zo"]) not in kept]
             timings["zoomout_polish"] = time.perf_counter() - t_p
 
     direct = min(cands, key=lambda r: score(r, 1.0))
