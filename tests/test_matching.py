@@ -588,6 +588,35 @@ def test_background_self_symmetry_gives_the_same_maps(monkeypatch):
     assert exact(out[True][0], perm) >= 0.95
 
 
+def test_matching_stages_run_blas_on_one_thread(monkeypatch):
+    # after preparation, numpy's BLAS runs single-threaded (idle BLAS threads slowed two-thread
+    # matches by 30 %), in the main thread and in the background self-symmetry alike; the
+    # caller's BLAS threads are restored after the match (here: 2, set by the test)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas() -> set[int]:
+        return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+    seen: list[tuple[str, set[int]]] = []
+    orig = tm.pipeline._landmark_search
+
+    def spy(*args, **kw):
+        import threading
+
+        seen.append((threading.current_thread().name, blas()))
+        return orig(*args, **kw)
+
+    monkeypatch.setattr(tm.pipeline, "_landmark_search", spy)
+    V, F = mirror_mesh(3)
+    W, G, _ = moved_copy(V, F, seed=11)
+    with threadpool_limits(limits=2, user_api="blas"), threads(2):
+        assert blas() == {2}
+        match(prepare(Mesh(V, F)), prepare(Mesh(W, G)))
+        assert blas() == {2}
+    assert {name for name, _ in seen} == {"MainThread", "torchheat-background"}
+    assert all(b == {1} for _, b in seen)
+
+
 def test_role_copies_share_the_self_symmetries_and_operators():
     # the two ways of a partial match each match into a role copy of the whole (its times
     # changed): the second copy must see both self-symmetries the first one computed (it saw

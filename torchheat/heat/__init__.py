@@ -1,9 +1,9 @@
 """Heat kernel of a triangle mesh: batched columns and the Heat Kernel Signature.
 
 A package in the order a query flows: ``kernel.py`` (:class:`HeatKernel`: set-up, plan,
-dispatch; :func:`default_times`, :func:`threads`), ``spectral.py`` (the eigenbasis path, checks
-of given eigenpairs), ``chebyshev.py`` (the Chebyshev expansion and recurrence, the spectral
-bound), ``certify.py`` (a-posteriori error bounds).
+dispatch; :func:`default_times`, :func:`threads`, :func:`blas_threads`), ``spectral.py`` (the
+eigenbasis path, checks of given eigenpairs), ``chebyshev.py`` (the Chebyshev expansion and
+recurrence, the spectral bound), ``certify.py`` (a-posteriori error bounds).
 
 The paper defines the heat kernel matrix ``K_t = exp(-t L) A^-1`` with ``L = A^-1 W`` (lumped
 mass ``A``, stiffness ``W``), so that ``k_t(p, x) = K_t[x, p]`` is the heat at ``x`` at time ``t``
@@ -42,7 +42,7 @@ from .chebyshev import (
     chebyshev_tail,
     lambda_max_bound,
 )
-from .kernel import HeatKernel, default_times, threads
+from .kernel import HeatKernel, blas_threads, default_times, threads
 from .spectral import _check_eigenpairs  # noqa: F401 - not public API (tests, operators)
 
 __all__ = [
@@ -53,5 +53,6 @@ __all__ = [
     "chebyshev_tail",
     "lambda_max_bound",
     "threads",
+    "blas_threads",
     "CHEBYSHEV_BYTES",
 ]

@@ -4,6 +4,7 @@ direct and symmetric maps; the target's self-symmetry behind the mirror hypothes
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..heat import threads
+from ..heat import blas_threads, threads
 from ..mesh import Mesh
 from .background import _Background
 from .landmarks import (
@@ -207,7 +208,9 @@ def match(
         Refinement descriptor: None (default) the t-scaled heat kernel map of the samples;
         a float uses ``log max(k_t, floor)`` instead (Varadhan: distance-like coordinates).
     num_threads : int, optional
-        torch threads.
+        torch threads. Once the shapes are prepared, numpy's and scipy's BLAS run on one
+        thread (:func:`torchheat.heat.blas_threads`): their matrices here are small, and idle
+        BLAS threads slowed two-thread matches by 30 %.
     background : bool
         (``method="refine"``) Compute the target's self-symmetry (the mirror hypothesis; once
         per prepared target) in a background thread while the hypotheses are refined, each
@@ -407,7 +410,8 @@ def match(
         source_landmarks = 8 if spectral else 5
     if refine_keep == "auto":
         refine_keep = 12 if spectral else 8
-    with threads(num_threads), _Background() as bg:
+    # (the BLAS limit is left last: after the background thread has been waited for)
+    with contextlib.ExitStack() as blas, threads(num_threads), _Background() as bg:
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
@@ -435,6 +439,9 @@ def match(
                     and torch.equal(tgt.hk.times, src.hk.times))
             tgt = _role_copy(tgt, None if same else src.hk.times)
         timings["prepare"] = time.perf_counter() - t_start
+        # the shapes are prepared (eigensolves use BLAS threads well): from here on numpy
+        # works on small matrices beside torch's threads (see heat.blas_threads)
+        blas.enter_context(blas_threads(1))
         if (background and method == "refine" and mirror_hypothesis and tgt is not src
                 and not _self_symmetry_cached(tgt, refine_log_floor)):
             bg.start(_self_symmetry, tgt, use_hks, engine, n_candidates, refine_log_floor)
