@@ -2,7 +2,8 @@
 """torchheat against pyFM's README pipeline, side by side on the same pairs and metric.
 
     python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape] [--points 300]
-                                   [--process] [--fine K] [--out out/compare_pyfm.json]
+                                   [--process [--runs N]] [--fine K]
+                                   [--out out/compare_pyfm.json]
 
 pyFM (``pip install pyfmaps``; an optional dependency of this script only, never imported by
 the package) runs the pipeline of its README (v1.3.1): ``TriMesh.load(path, area_normalize=
@@ -20,7 +21,9 @@ heat-method geodesics), direct, and flip-aware on TOSCA (the whole map judged ag
 direct or the symmetric ground truth, whichever has the lower mean error).
 
 ``--process`` also times each tool as a whole process on the first pair (``torchheat match``
-CLI against a ``python -c`` running pyFM's pipeline), back to back.
+CLI against a ``python -c`` running pyFM's pipeline), back to back, ``--runs N`` times
+alternating (medians): with one thread each, and with each tool's defaults (thread variables
+unset, all cores).
 
 Sets: ``tosca12`` = two test pairs per class (the first two of each class in test_pairs.txt:
 16 pairs; the name is that of the issue's 12-pair measurement), ``scape6`` = SCAPE pairs
@@ -128,19 +131,38 @@ def _path(shape) -> str:
     return str(shape.path)
 
 
-def process_times(src: str, tgt: str, tmp: Path, fine: int | None = None) -> dict:
-    """Whole-process wall times of both tools on one pair, back to back."""
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def process_times(src: str, tgt: str, tmp: Path, fine: int | None = None,
+                  runs: int = 1) -> dict:
+    """Whole-process wall times of both tools on one pair, back to back, ``runs`` times
+    alternating (medians; this host's single runs move by 10-20 %).
+
+    Two settings: ``one thread`` (``torchheat match --threads 1`` and pyFM, both with one BLAS
+    thread: this script's environment), and ``defaults`` (both as a user runs them: the three
+    thread variables unset, ``torchheat match`` with its default threads).
+    """
+    import statistics
+
+    root = str(Path(__file__).resolve().parents[1])
+    one = dict(os.environ, PYTHONPATH=root)
+    dflt = {k: v for k, v in one.items() if k not in _THREAD_VARS}
     extra = [] if fine is None else ["--fine", str(fine)]
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "from torchheat.cli import run; run()", "match",
-                    src, tgt, "-o", str(tmp / "th.txt"), "--threads", "1", *extra],
-                   check=True, env=env, capture_output=True)
-    t1 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", PYFM_SNIPPET, src, tgt, str(tmp / "pyfm.txt")],
-                   check=True, env=env, capture_output=True)
-    t2 = time.perf_counter()
-    return {"torchheat_process_s": t1 - t0, "pyfm_process_s": t2 - t1}
+    th = [sys.executable, "-c", "from torchheat.cli import run; run()", "match", src, tgt,
+          "-o", str(tmp / "th.txt"), *extra]
+    pf = [sys.executable, "-c", PYFM_SNIPPET, src, tgt, str(tmp / "pyfm.txt")]
+    cases = {"torchheat_process_s": (th + ["--threads", "1"], one),
+             "pyfm_process_s": (pf, one),
+             "torchheat_process_default_s": (th, dflt),
+             "pyfm_process_default_s": (pf, dflt)}
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(max(1, int(runs))):
+        for key, (cmd, env) in cases.items():
+            t0 = time.perf_counter()
+            subprocess.run(cmd, check=True, env=env, capture_output=True)
+            times[key].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def main(argv: list[str]) -> None:
@@ -150,7 +172,7 @@ def main(argv: list[str]) -> None:
     from torchheat.evaluate import GeodesicSolver
 
     torch.set_num_threads(1)
-    name, points, proc, outf, fine = "tosca12", 300, False, None, None
+    name, points, proc, outf, fine, runs = "tosca12", 300, False, None, None, 1
     it = iter(argv)
     for a in it:
         if a == "--set":
@@ -163,6 +185,8 @@ def main(argv: list[str]) -> None:
             outf = next(it)
         elif a == "--fine":
             fine = int(next(it))
+        elif a == "--runs":
+            runs = int(next(it))
         else:
             raise SystemExit(__doc__)
     pc = pairs_of(name)
@@ -188,7 +212,7 @@ def main(argv: list[str]) -> None:
             rec[tool] = {"direct": _summary(e["direct"]), "flip": _summary(e["flip"])}
         if proc and i == 0:
             rec.update(process_times(_path(pr.source), _path(pr.target),
-                                     Path(outf or "out/compare_pyfm.json").parent, fine))
+                                     Path(outf or "out/compare_pyfm.json").parent, fine, runs))
         res.append(rec)
         print(f"{pr.name:22s} torchheat {rec['torchheat']['direct']['under_0.25']:.3f} "
               f"({rec['torchheat']['direct']['mean']:.4f}, {rec['torchheat_s']:.2f} s)  "
@@ -207,8 +231,11 @@ def main(argv: list[str]) -> None:
         print(f"{tool:9s} time per pair (in process) "
               f"{np.mean([r[tool + '_s'] for r in res]):.2f} s")
     if res and "pyfm_process_s" in res[0]:
-        print(f"whole process, first pair: torchheat {res[0]['torchheat_process_s']:.2f} s, "
-              f"pyFM {res[0]['pyfm_process_s']:.2f} s")
+        r0 = res[0]
+        print(f"whole process, first pair (median of {runs}): one thread: torchheat "
+              f"{r0['torchheat_process_s']:.2f} s, pyFM {r0['pyfm_process_s']:.2f} s; defaults: "
+              f"torchheat {r0['torchheat_process_default_s']:.2f} s, pyFM "
+              f"{r0['pyfm_process_default_s']:.2f} s")
     if outf:
         Path(outf).parent.mkdir(parents=True, exist_ok=True)
         Path(outf).write_text(json.dumps(res, indent=1))
