@@ -25,7 +25,8 @@ from .nn import (
     _TreeCache,
     nearest_neighbors,
 )
-from .prepared import PreparedShape, _descriptor, _fps
+from .options import _Options
+from .prepared import PreparedShape, _descriptor, _fps, _memoised
 
 __all__ = ["landmark_scores", "dense_map"]
 
@@ -343,3 +344,70 @@ def _greedy_landmarks(src, tgt, lms, total, use_hks, engine):
                              use_hks=use_hks, engine=engine)
         lms.append((p2, int(tgt.features[int(torch.argmin(sc))])))
     return lms
+
+
+def _seed_landmarks(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torch.Tensor,
+                    p2: int | None, use_hks: bool, limit: int,
+                    expand_top: int) -> list[list[tuple[int, int]]]:
+    """Landmark hypotheses of the source landmark ``p`` from its ranked target candidates.
+
+    The first ``limit`` distinct candidates ``q`` (5 % of the target's diameter apart, in rank
+    order), each giving ``[(p, q)]``; the first ``expand_top`` of them are expanded with the
+    twin landmark ``p2`` when there is one (:func:`_expand`: one hypothesis per near-best
+    image of ``p2``).
+    """
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    return [lm for i, q in enumerate(_distinct(ranked, Vt, radius, limit))
+            for lm in _expand(src, tgt, p, q, p2 if i < expand_top else None, use_hks, radius)]
+
+
+def _feature_seeds(src: PreparedShape, tgt: PreparedShape, pe: int, opt: _Options,
+                   score_rows: torch.Tensor | None, extra_rows: torch.Tensor,
+                   trees: _TreeCache | None) -> list[list[tuple[int, int]]]:
+    """Landmark hypotheses of a further source feature ``pe`` (``match``'s automatic search).
+
+    Its candidates are the ``opt.extra_candidates`` target features of most similar HKS (the
+    true image has nearly the same), scored by ``E(pe, q)`` on ``extra_rows``; then
+    :func:`_seed_landmarks` with its own twin landmark (:func:`_twin_landmark`).
+    """
+    pool = tgt.features
+    if pool.numel() > opt.extra_candidates:
+        dh = (tgt.hks[pool] - src.hks[pe].to(tgt.hks.dtype)).abs().amax(1)
+        pool = pool[torch.argsort(dh, stable=True)[:opt.extra_candidates]]
+    sc = landmark_scores(src, tgt, pe, pool, use_hks=opt.use_hks, engine=opt.engine,
+                         samples=extra_rows, trees=trees)
+    ranked = pool[torch.argsort(sc, stable=True)]
+    pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
+    return _seed_landmarks(src, tgt, pe, ranked, pe2, opt.use_hks, opt.n_candidates,
+                           opt.expand_top)
+
+
+def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
+                      p2: int | None, auto_landmark: bool, score_rows: torch.Tensor | None,
+                      opt: _Options, memo: dict | None = None) -> list[list[tuple[int, int]]]:
+    """Every landmark hypothesis of ``match``'s default pipeline, in seeding order.
+
+    Those of the landmark ``p`` (its ranked candidates ``cands``; its twin ``p2``, or one
+    found by :func:`_twin_landmark` when ``opt.expand_top > 0``), then, for an automatic
+    landmark, those of ``opt.source_landmarks - 1`` further source features, each the feature
+    farthest from the ones already used (:func:`_feature_seeds`, scored on a quarter of the
+    score samples: a farthest-point prefix, still spread). ``memo``: the match's memo (its
+    k-d trees, and the further features' seeds, shared by the stages of a staged search).
+    """
+    if p2 is None and opt.expand_top > 0:
+        p2 = _twin_landmark(src, p, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
+    hyp = _seed_landmarks(src, tgt, p, cands, p2, opt.use_hks, opt.n_candidates,
+                          opt.expand_top)
+    if auto_landmark and opt.source_landmarks > 1:
+        Vs, _ = src.mesh.numpy()
+        feats = src.features.numpy()
+        used = [p]
+        extra_rows = _fps(src, max(100, (opt.score_samples or src.n) // 4))
+        trees = None if memo is None else memo.get("trees")
+        for _ in range(min(opt.source_landmarks, feats.size) - 1):
+            pe = _farthest_feature(Vs, feats, used)
+            used.append(pe)
+            hyp += _memoised(memo, ("seeds", pe), lambda pe=pe: _feature_seeds(
+                src, tgt, pe, opt, score_rows, extra_rows, trees))
+    return hyp

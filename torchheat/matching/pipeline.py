@@ -19,15 +19,12 @@ from ..mesh import Mesh
 from .background import _Background
 from .landmarks import (
     _ambiguity,
-    _distinct,
-    _expand,
-    _farthest_feature,
     _greedy_landmarks,
+    _hypothesis_seeds,
     _landmark_search,
     _sample_map,
-    _twin_landmark,
+    _seed_landmarks,
     dense_map,
-    landmark_scores,
 )
 from .nn import WORK_BYTES, _TreeCache
 from .options import _Options
@@ -470,8 +467,7 @@ def match(
         descr_fmap = None
         search = None  # method="refine": which search gave the map
         if method == "paper":
-            hyp = [lm for q in _distinct(cands, Vt, 0.05 * diam_t, 2)
-                   for lm in _expand(src, tgt, p, q, p2, use_hks, 0.05 * diam_t)][:2]
+            hyp = _seed_landmarks(src, tgt, p, cands, p2, use_hks, 2, expand_top=2)[:2]
             results = []
             for lms in hyp:
                 if len(lms) < landmarks:
@@ -590,8 +586,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     stages of ``match(staged=True)`` share it).
     """
     Vs, _ = src.mesh.numpy()
-    Vt, _ = tgt.mesh.numpy()
-    diam_s, diam_t = src.mesh.bbox_diagonal(), tgt.mesh.bbox_diagonal()
+    diam_s = src.mesh.bbox_diagonal()
     hypotheses: list = []
     hyp_images: list[torch.Tensor] = []
     t0 = time.perf_counter()
@@ -603,39 +598,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     rows = torch.cat([samples, rows[~torch.isin(rows, samples)]])  # samples first
     pos = torch.full((src.n,), -1, dtype=torch.int64)
     pos[rows] = torch.arange(rows.numel())
-    if p2 is None and opt.expand_top > 0:
-        p2 = _twin_landmark(src, p, opt.use_hks, score_rows, diam_s)
-    hyp = [lm for i, q in enumerate(_distinct(cands, Vt, 0.05 * diam_t, opt.n_candidates))
-           for lm in _expand(src, tgt, p, q, p2 if i < opt.expand_top else None, opt.use_hks,
-                             0.05 * diam_t)]
-    if auto_landmark and opt.source_landmarks > 1:
-        # more starting points: further source features, each farthest from the ones
-        # already used, with their own candidates and twin landmarks
-        feats = src.features.numpy()
-        used = [p]
-        # a quarter of the score samples (a farthest-point prefix: still spread)
-        extra_rows = _fps(src, max(100, (opt.score_samples or src.n) // 4))
-
-        def seeds_of(pe: int) -> list:
-            # candidates: the target features of most similar HKS (the true image has
-            # nearly the same), then the full score E(pe, q) on those
-            pool_e = tgt.features
-            if pool_e.numel() > opt.extra_candidates:
-                dh = (tgt.hks[pool_e] - src.hks[pe].to(tgt.hks.dtype)).abs().amax(1)
-                pool_e = pool_e[torch.argsort(dh, stable=True)[:opt.extra_candidates]]
-            sc = landmark_scores(src, tgt, pe, pool_e, use_hks=opt.use_hks,
-                                 engine=opt.engine, samples=extra_rows,
-                                 trees=None if memo is None else memo.get("trees"))
-            ce = pool_e[torch.argsort(sc, stable=True)]
-            pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, diam_s)
-            return [lm for i, q in enumerate(_distinct(ce, Vt, 0.05 * diam_t, opt.n_candidates))
-                    for lm in _expand(src, tgt, pe, q, pe2 if i < opt.expand_top else None,
-                                      opt.use_hks, 0.05 * diam_t)]
-
-        for _ in range(min(opt.source_landmarks, feats.size) - 1):
-            pe = _farthest_feature(Vs, feats, used)
-            used.append(pe)
-            hyp += _memoised(memo, ("seeds", pe), lambda pe=pe: seeds_of(pe))
+    hyp = _hypothesis_seeds(src, tgt, p, cands, p2, auto_landmark, score_rows, opt, memo)
     refiner = _Refiner(src, tgt, samples, opt.refine_log_floor,
                        centre=opt.partial_ratio is None)
     # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
