@@ -22,8 +22,10 @@ The package's modules, in the order data flows: :mod:`.nn` (nearest-neighbour en
 :mod:`.prepared` (prepared shapes and their landmark descriptors), :mod:`.landmarks` (landmark
 search, dense maps, seeding), :mod:`.orientation`, :mod:`.refine` (correspondence
 augmentation), :mod:`.result` (:class:`Correspondence`), :mod:`.select` (the choice among
-refined hypotheses by ZoomOut, and the chosen maps made dense), :mod:`.partial_scale` (a piece
-matched two ways — at the whole's scale and with its holes filled, ``partial_scale="auto"``),
+refined hypotheses by ZoomOut, and the chosen maps made dense), :mod:`.hypotheses` (one
+match's landmark hypotheses refined: samples, round 1, further rounds),
+:mod:`.partial_scale` (a piece matched two ways — at the whole's scale and with its holes
+filled, ``partial_scale="auto"``),
 :mod:`.pipeline` (:func:`match`, its stages in order; :mod:`.options` holds what they read)
 and :mod:`.symmetry` (:func:`symmetry`), with
 :mod:`.zoomout` (spectral refinement), :mod:`.fmap` (the landmark-free functional map),

@@ -17,24 +17,22 @@ import torch
 from ..heat import blas_threads, threads
 from ..mesh import Mesh
 from .background import _Background
+from .hypotheses import _Hypotheses
 from .landmarks import (
     _ambiguity,
     _greedy_landmarks,
     _hypothesis_seeds,
     _landmark_search,
-    _sample_map,
     _seed_landmarks,
     dense_map,
 )
 from .nn import WORK_BYTES, _TreeCache
 from .options import _Options
-from .orientation import _orientation, _triangles
 from .partial import (
     PARTIAL_MARGIN,
     _agreement,
     _interior_view,
     _setup,
-    grow_hypothesis,
     partial_descriptor_images,
     partial_descriptor_map,
     partial_times,
@@ -47,7 +45,6 @@ from .prepared import (
     PreparedShape,
     _as_prepared,
     _fps,
-    _memoised,
     _role_copy,
 )
 from .quality import MapQuality, map_quality
@@ -590,43 +587,13 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     hypotheses: list = []
     hyp_images: list[torch.Tensor] = []
     t0 = time.perf_counter()
-    samples = _fps(src, opt.refine_samples)
-    tri = _triangles(Vs, _fps(src, opt.orientation_samples).numpy())
-    rows = torch.as_tensor(
-        np.unique(np.concatenate([samples.numpy(), *tri])), dtype=torch.int64
-    )
-    rows = torch.cat([samples, rows[~torch.isin(rows, samples)]])  # samples first
-    pos = torch.full((src.n,), -1, dtype=torch.int64)
-    pos[rows] = torch.arange(rows.numel())
+    hs = _Hypotheses(src, tgt, opt, memo)
+    samples, tri, rows, pos, refiner = hs.samples, hs.tri, hs.rows, hs.pos, hs.refiner
+    round1, refined = hs.round1, hs.refined
     hyp = _hypothesis_seeds(src, tgt, p, cands, p2, auto_landmark, score_rows, opt, memo)
-    refiner = _Refiner(src, tgt, samples, opt.refine_log_floor,
-                       centre=opt.partial_ratio is None)
     # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
     # energy go on: a hypothesis that starts far behind does not converge (measured:
     # the energies of converged and failed hypotheses differ 5-50x)
-    def round1(lms0: list) -> tuple[float, torch.Tensor]:
-        return _memoised(memo, ("round 1", tuple(lms0)), lambda: _round1(lms0))
-
-    def refined(g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, float, float]:
-        """Sample images, energy and orientation of a hypothesis after ``iterations``
-        rounds of correspondence augmentation from ``g0`` (memoised)."""
-        def compute() -> tuple[torch.Tensor, float, float]:
-            f_rows, g, energy = refiner.augment(g0, rows, iterations)
-            return g, energy, _orientation(src, tgt, tri, lambda i: f_rows[pos[i]].numpy())
-
-        return _memoised(memo, ("refined", g0.numpy().tobytes(), iterations), compute)
-
-    def _round1(lms0: list) -> tuple[float, torch.Tensor]:
-        g0, _ = _sample_map(src, tgt, lms0, samples, opt.use_hks, opt.engine)
-        if opt.partial_ratio is not None:  # right near the landmark only: grow from there
-            g0 = grow_hypothesis(src, tgt, [int(lms0[0][0])], samples, g0,
-                                 lambda lm: _Refiner(src, tgt, lm, opt.refine_log_floor,
-                                                     centre=False))
-        if opt.refine_iterations > 1:
-            d2, g0 = refiner.map(g0, samples)
-            return float(d2.double().mean()), g0
-        return 0.0, g0
-
     stage = []
     for lms0 in hyp:
         e1, g0 = round1(lms0)

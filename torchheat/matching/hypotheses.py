@@ -1,0 +1,74 @@
+"""Landmark hypotheses refined by correspondence augmentation: the refinement samples and the
+rows the orientation test reads, round 1 of every hypothesis, and further rounds (one match's
+work, memoised for the stages of a staged search).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .landmarks import _sample_map
+from .options import _Options
+from .orientation import _orientation, _triangles
+from .partial import grow_hypothesis
+from .prepared import PreparedShape, _fps, _memoised
+from .refine import _Refiner
+
+
+class _Hypotheses:
+    """One match's refinement of landmark hypotheses (``match``'s default pipeline).
+
+    ``samples``: the ``opt.refine_samples`` farthest-point source vertices whose images a
+    hypothesis is (``g``, one target vertex per sample); ``tri``: the orientation test's
+    triangles (:func:`~torchheat.matching.orientation._triangles` of
+    ``opt.orientation_samples`` farthest points); ``rows``: the samples, then every other
+    vertex of ``tri``, and ``pos`` their positions (-1 elsewhere); ``refiner``: the
+    :class:`~torchheat.matching.refine._Refiner` of the samples. ``memo``: the match's memo
+    (round 1 and refined hypotheses are deterministic given their seeds).
+    """
+
+    def __init__(self, src: PreparedShape, tgt: PreparedShape, opt: _Options,
+                 memo: dict | None = None) -> None:
+        self.src, self.tgt, self.opt, self.memo = src, tgt, opt, memo
+        Vs, _ = src.mesh.numpy()
+        self.samples = _fps(src, opt.refine_samples)
+        self.tri = _triangles(Vs, _fps(src, opt.orientation_samples).numpy())
+        rows = torch.as_tensor(
+            np.unique(np.concatenate([self.samples.numpy(), *self.tri])), dtype=torch.int64
+        )
+        self.rows = torch.cat([self.samples, rows[~torch.isin(rows, self.samples)]])
+        self.pos = torch.full((src.n,), -1, dtype=torch.int64)
+        self.pos[self.rows] = torch.arange(self.rows.numel())
+        self.refiner = _Refiner(src, tgt, self.samples, opt.refine_log_floor,
+                                centre=opt.partial_ratio is None)
+
+    def round1(self, lms0: list) -> tuple[float, torch.Tensor]:
+        """Round 1 of the hypothesis of landmark pairs ``lms0``: its one-point (or few-point)
+        map of the samples, refined once; ``(mean squared descriptor distance, images)``.
+        A piece's map is right near its landmark only, so it is grown from there first
+        (:func:`~torchheat.matching.partial.grow_hypothesis`)."""
+        return _memoised(self.memo, ("round 1", tuple(lms0)), lambda: self._round1(lms0))
+
+    def _round1(self, lms0: list) -> tuple[float, torch.Tensor]:
+        src, tgt, opt, samples = self.src, self.tgt, self.opt, self.samples
+        g0, _ = _sample_map(src, tgt, lms0, samples, opt.use_hks, opt.engine)
+        if opt.partial_ratio is not None:  # right near the landmark only: grow from there
+            g0 = grow_hypothesis(src, tgt, [int(lms0[0][0])], samples, g0,
+                                 lambda lm: _Refiner(src, tgt, lm, opt.refine_log_floor,
+                                                     centre=False))
+        if opt.refine_iterations > 1:
+            d2, g0 = self.refiner.map(g0, samples)
+            return float(d2.double().mean()), g0
+        return 0.0, g0
+
+    def refined(self, g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, float, float]:
+        """Sample images, energy and orientation of a hypothesis after ``iterations`` rounds
+        of correspondence augmentation from the sample images ``g0``."""
+        def compute() -> tuple[torch.Tensor, float, float]:
+            f_rows, g, energy = self.refiner.augment(g0, self.rows, iterations)
+            o = _orientation(self.src, self.tgt, self.tri,
+                             lambda i: f_rows[self.pos[i]].numpy())
+            return g, energy, o
+
+        return _memoised(self.memo, ("refined", g0.numpy().tobytes(), iterations), compute)
