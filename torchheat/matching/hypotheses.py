@@ -13,7 +13,7 @@ from .options import _Options
 from .orientation import _orientation, _triangles
 from .partial import grow_hypothesis
 from .prepared import PreparedShape, _fps, _memoised
-from .refine import _Refiner
+from .refine import _is_identity, _Refiner
 
 
 class _Hypotheses:
@@ -72,3 +72,47 @@ class _Hypotheses:
             return g, energy, o
 
         return _memoised(self.memo, ("refined", g0.numpy().tobytes(), iterations), compute)
+
+    def first_round(self, hyp: list) -> list[tuple[float, int, list, torch.Tensor]]:
+        """Round 1 of every landmark hypothesis of ``hyp``: ``(energy, seeding order,
+        landmarks, sample images)``, lowest energy first (ties in seeding order)."""
+        stage = []
+        for lms0 in hyp:
+            e1, g0 = self.round1(lms0)
+            stage.append((e1, len(stage), lms0, g0))
+        stage.sort(key=lambda s_: (s_[0], s_[1]))
+        return stage
+
+    def refine_kept(self, stage: list, forced: list, self_match: bool
+                    ) -> tuple[list[dict], list, list[torch.Tensor]]:
+        """The ``opt.refine_keep`` hypotheses of ``stage`` with the lowest round-1 energies,
+        and every ``forced`` one (``(landmarks, sample images)``), refined further; a
+        hypothesis that starts far behind does not converge (measured: the energies of
+        converged and failed hypotheses differ 5-50x).
+
+        ``self_match`` (a shape against itself): the identity (energy 0) appears once per
+        seed; one is kept, so that the pruning does not crowd out the symmetric hypotheses.
+        Returns the refined hypotheses (``{"lms0", "g", "energy", "orientation"}``) and, for
+        the diagnostics, every hypothesis ``(landmarks, energy, orientation)`` (the pruned
+        ones with their round-1 energy and no orientation) with its sample images.
+        """
+        opt = self.opt
+        if self_match:
+            Vs, _ = self.src.mesh.numpy()
+            radius = 0.05 * self.src.mesh.bbox_diagonal()
+            ident = [_is_identity({"g": s_[3]}, Vs, radius, self.samples) for s_ in stage]
+            first = ident.index(True) if any(ident) else -1
+            stage = [s_ for i, s_ in enumerate(stage) if not ident[i] or i == first]
+        keep = len(stage) if opt.refine_keep is None else max(1, int(opt.refine_keep))
+        results: list[dict] = []
+        hypotheses: list = []
+        hyp_images: list[torch.Tensor] = []
+        for e1, _, lms0, g0 in stage[keep:]:
+            hypotheses.append((lms0, e1, float("nan")))
+            hyp_images.append(g0)
+        for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
+            g, energy, o = self.refined(g0, max(opt.refine_iterations - 1, 1))
+            results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
+            hypotheses.append((lms0 or ["descriptor map"], energy, o))
+            hyp_images.append(g)
+        return results, hypotheses, hyp_images

@@ -582,61 +582,12 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     match's memo of refined hypotheses and ZoomOuts (deterministic given their seeds; the two
     stages of ``match(staged=True)`` share it).
     """
-    Vs, _ = src.mesh.numpy()
-    diam_s = src.mesh.bbox_diagonal()
-    hypotheses: list = []
-    hyp_images: list[torch.Tensor] = []
     t0 = time.perf_counter()
     hs = _Hypotheses(src, tgt, opt, memo)
-    samples, tri, rows, pos, refiner = hs.samples, hs.tri, hs.rows, hs.pos, hs.refiner
-    round1, refined = hs.round1, hs.refined
     hyp = _hypothesis_seeds(src, tgt, p, cands, p2, auto_landmark, score_rows, opt, memo)
-    # round 1 for every hypothesis (samples only), then the `refine_keep` of lowest
-    # energy go on: a hypothesis that starts far behind does not converge (measured:
-    # the energies of converged and failed hypotheses differ 5-50x)
-    stage = []
-    for lms0 in hyp:
-        e1, g0 = round1(lms0)
-        stage.append((e1, len(stage), lms0, g0))
-    stage.sort(key=lambda s_: (s_[0], s_[1]))
-    forced: list[tuple[list, torch.Tensor]] = []  # (landmarks, sample images), all refined
-    descr_fmap = None
-    if (opt.partial_ratio is not None and opt.descriptor_seed
-            and shared_band(src, tgt, opt.partial_ratio) is not None):
-        # a piece: the landmark-free partial functional map, refined spectrally (rectangular
-        # ZoomOut; the samples are a prefix of its rows), gives one more hypothesis and the
-        # images of the deepest source features, each a one-point hypothesis of its own;
-        # all are refined (their round-1 energies are not comparable)
-        t_d = time.perf_counter()
-        with threads(opt.num_threads):
-            C_d = partial_descriptor_map(src, tgt, opt.partial_ratio)
-            g_d = partial_descriptor_images(src, tgt, C_d, samples)
-        zo_d = _zoomout_final(src, tgt, samples, g_d, opt)
-        descr_fmap = zo_d.C
-        forced.append(([], zo_d.images[:samples.numel()]))
-        feats = src.features[:_PARTIAL_DESCR_LANDMARKS]
-        with threads(opt.num_threads):
-            q_d = partial_descriptor_images(src, tgt, zo_d.C, feats)
-        for p_, q_ in zip(feats.tolist(), q_d.tolist(), strict=True):
-            lms0 = [(int(p_), int(q_))]
-            forced.append((lms0, round1(lms0)[1]))
-        timings["descriptor_seed"] = time.perf_counter() - t_d
-    if tgt is src:
-        # a shape against itself: the identity (energy 0) appears once per seed; keep
-        # one, so that the pruning does not crowd out the symmetric hypotheses
-        ident = [_is_identity({"g": s_[3]}, Vs, 0.05 * diam_s, samples) for s_ in stage]
-        first = ident.index(True) if any(ident) else -1
-        stage = [s_ for i, s_ in enumerate(stage) if not ident[i] or i == first]
-    keep = len(stage) if opt.refine_keep is None else max(1, int(opt.refine_keep))
-    results = []
-    for e1, _, lms0, g0 in stage[keep:]:
-        hypotheses.append((lms0, e1, float("nan")))
-        hyp_images.append(g0)
-    for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
-        g, energy, o = refined(g0, max(opt.refine_iterations - 1, 1))
-        results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
-        hypotheses.append((lms0 or ["descriptor map"], energy, o))
-        hyp_images.append(g)
+    stage = hs.first_round(hyp)
+    forced, descr_fmap = _piece_seeds(src, tgt, hs, opt, timings)
+    results, hypotheses, hyp_images = hs.refine_kept(stage, forced, tgt is src)
     timings["hypotheses"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     by_energy = sorted(results, key=lambda r: r["energy"])
@@ -651,10 +602,62 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         sig = _symmetry_at(tgt, best["g"], opt.use_hks, opt.engine, opt.n_candidates,
                            opt.refine_log_floor)
         if sig is not None:
-            g2, e2, o2 = refined(sig, opt.refine_iterations)
+            g2, e2, o2 = hs.refined(sig, opt.refine_iterations)
             mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
             hypotheses.append((["mirror of best"], e2, o2))
             hyp_images.append(g2)
+    direct, sym, zo_diag = _choose(src, tgt, hs, by_energy, mirror, opt, timings, memo,
+                                   hypotheses, hyp_images)
+    _dense_maps(src, tgt, hs, direct, sym, opt, timings)
+    orient = direct.get("zo_orientation", direct["orientation"])
+    timings["dense_map"] = time.perf_counter() - t0
+    return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,
+            "hyp_images": hyp_images, "samples": hs.samples, "zo_diag": zo_diag,
+            "descriptor_fmap": descr_fmap}
+
+
+def _piece_seeds(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, opt: _Options,
+                 timings: dict) -> tuple[list[tuple[list, torch.Tensor]], torch.Tensor | None]:
+    """A piece's hypotheses that are all refined (their round-1 energies are not comparable):
+    the landmark-free partial functional map, refined spectrally (rectangular ZoomOut; the
+    samples are a prefix of its rows), and the images under it of the deepest source
+    features, each a one-point hypothesis of its own. ``(landmarks, sample images)`` each,
+    and the functional map; none for a whole shape or without a shared band."""
+    forced: list[tuple[list, torch.Tensor]] = []
+    if not (opt.partial_ratio is not None and opt.descriptor_seed
+            and shared_band(src, tgt, opt.partial_ratio) is not None):
+        return forced, None
+    samples = hs.samples
+    t_d = time.perf_counter()
+    with threads(opt.num_threads):
+        C_d = partial_descriptor_map(src, tgt, opt.partial_ratio)
+        g_d = partial_descriptor_images(src, tgt, C_d, samples)
+    zo_d = _zoomout_final(src, tgt, samples, g_d, opt)
+    forced.append(([], zo_d.images[:samples.numel()]))
+    feats = src.features[:_PARTIAL_DESCR_LANDMARKS]
+    with threads(opt.num_threads):
+        q_d = partial_descriptor_images(src, tgt, zo_d.C, feats)
+    for p_, q_ in zip(feats.tolist(), q_d.tolist(), strict=True):
+        lms0 = [(int(p_), int(q_))]
+        forced.append((lms0, hs.round1(lms0)[1]))
+    timings["descriptor_seed"] = time.perf_counter() - t_d
+    return forced, zo_d.C
+
+
+def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: list[dict],
+            mirror: dict | None, opt: _Options, timings: dict, memo: dict | None,
+            hypotheses: list, hyp_images: list[torch.Tensor]
+            ) -> tuple[dict, dict | None, list]:
+    """The direct and symmetric maps among the refined hypotheses ``by_energy`` (lowest
+    energy first) and the ``mirror`` of the best: by ZoomOut for two whole
+    shapes (:func:`~torchheat.matching.select._spectral_choice`), else by energy and
+    orientation (a piece: and agreement with its landmark-free map; a shape against itself:
+    the landmark-free symmetry competes too, appended to ``hypotheses`` and ``hyp_images``).
+    Returns ``(direct, sym, ZoomOut diagnostics)``."""
+    Vs, _ = src.mesh.numpy()
+    diam_s = src.mesh.bbox_diagonal()
+    samples, tri, rows, pos, refiner = hs.samples, hs.tri, hs.rows, hs.pos, hs.refiner
+    best = by_energy[0]
     # The orientation test picks the direct (orientation-preserving) map among the
     # hypotheses, softly: score = log(energy) - orientation_weight * orientation, so
     # that a clearly better-converged hypothesis is not overruled by a noisy
@@ -740,6 +743,15 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                 if r is not None:
                     r["zo"] = _zoomout_final(src, tgt, samples, r["g"], opt)
             timings["zoomout"] = time.perf_counter() - t_zo
+    return direct, sym, zo_diag
+
+
+def _dense_maps(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, direct: dict,
+                sym: dict | None, opt: _Options, timings: dict) -> None:
+    """The chosen maps' dense maps (``"map"``, computed when first asked for), landmarks
+    (``"landmarks"``: the hypothesis' own, then the samples and their images) and, for two
+    whole shapes, the dense map of the margin's rival (``direct["rival_map"]``)."""
+    samples, refiner = hs.samples, hs.refiner
     for r in (direct, sym):
         if r is None:
             continue
@@ -763,11 +775,6 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         # the best different whole map (the margin's rival), at the choice's size
         direct["rival_map"] = _dense_spectral(src, tgt, rival["zo"].C, opt.num_threads,
                                               timings)
-    orient = direct.get("zo_orientation", direct["orientation"])
-    timings["dense_map"] = time.perf_counter() - t0
-    return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,
-            "hyp_images": hyp_images, "samples": samples, "zo_diag": zo_diag,
-            "descriptor_fmap": descr_fmap}
 
 
 #: A piece's hypotheses are scored ``log(energy) - orientation_weight * orientation -
