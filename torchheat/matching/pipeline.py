@@ -464,17 +464,9 @@ def match(
         descr_fmap = None
         search = None  # method="refine": which search gave the map
         if method == "paper":
-            hyp = _seed_landmarks(src, tgt, p, cands, p2, use_hks, 2, expand_top=2)[:2]
-            results = []
-            for lms in hyp:
-                if len(lms) < landmarks:
-                    lms = _greedy_landmarks(src, tgt, lms, landmarks, use_hks, engine)
-                fmap, dist = dense_map(src, tgt, lms, use_hks=use_hks, engine=engine)
-                results.append({"landmarks": lms, "map": fmap,
-                                "energy": float((dist.double() ** 2).mean())})
-            direct = results[0]
-            sym = results[1] if len(results) > 1 else None
-            hypotheses = [(r["landmarks"], r["energy"], None) for r in results]
+            direct, sym = _paper_maps(src, tgt, p, cands, p2, landmarks, use_hks, engine)
+            hypotheses = [(r["landmarks"], r["energy"], None) for r in (direct, sym)
+                          if r is not None]
             timings["dense_map"] = time.perf_counter() - t0
         else:
             opts = _Options(
@@ -493,29 +485,11 @@ def match(
                 polished=polished and unit_ratio is None,  # not measured on pieces
                 tie_break=tie_break,
                 partial_ratio=None if part is None else part.ratio)
-            out, search = None, "full"
-            # refined hypotheses and ZoomOuts, shared by the two stages; the k-d trees
-            memo: dict = {"trees": trees}
             whole = part is None and unit_ratio is None  # not a piece, at either scale
-            if (staged and whole and landmark is None and tgt is not src and zoomout
-                    and orientation and opts.source_landmarks > _FIRST_STAGE_SEEDS):
-                # the first seeding features' hypotheses; kept when their choice is clear
-                t_q = time.perf_counter()
-                first = dataclasses.replace(
-                    opts, source_landmarks=_FIRST_STAGE_SEEDS,
-                    refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
-                    zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses),
-                    # an ambiguous first stage is never clear: the full search decides
-                    polished=False, tie_break=False)
-                out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings,
-                              memo)
-                timings["first_stage"] = time.perf_counter() - t_q
-                search = "first stage"
-                if not _clear(out["direct"]):
-                    out, search = None, "full (first stage not clear)"
-            if out is None:
-                out = _refine(src, tgt, p, cands, p2, landmark is None, score_rows, opts, bg,
-                              timings, memo)
+            staged_here = (staged and whole and landmark is None and tgt is not src
+                           and zoomout and orientation)
+            out, search = _search(src, tgt, p, cands, p2, landmark is None, score_rows, opts,
+                                  bg, timings, trees, staged_here)
             direct, sym, orient = out["direct"], out["sym"], out["orient"]
             hypotheses, hyp_images = out["hypotheses"], out["hyp_images"]
             samples = out["samples"]
@@ -568,6 +542,55 @@ def _pair_shapes(pair: Any) -> tuple[Any, Any]:
         return pair.source, pair.target
     raise TypeError(f"match needs a target, or a dataset Pair as its only shape; got one "
                     f"{type(pair).__name__}")
+
+
+def _paper_maps(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
+                p2: int | None, landmarks: int, use_hks: bool, engine: str
+                ) -> tuple[dict, dict | None]:
+    """``method="paper"``: the dense maps of the two best distinct candidates of ``p`` (each
+    expanded with the twin landmark ``p2`` when there is one), completed to ``landmarks``
+    landmark pairs by the paper's greedy search; ``{"landmarks", "map", "energy"}`` of the
+    direct (best) and symmetric (next) map, the latter None if there is a single candidate."""
+    hyp = _seed_landmarks(src, tgt, p, cands, p2, use_hks, 2, expand_top=2)[:2]
+    results = []
+    for lms in hyp:
+        if len(lms) < landmarks:
+            lms = _greedy_landmarks(src, tgt, lms, landmarks, use_hks, engine)
+        fmap, dist = dense_map(src, tgt, lms, use_hks=use_hks, engine=engine)
+        results.append({"landmarks": lms, "map": fmap,
+                        "energy": float((dist.double() ** 2).mean())})
+    return results[0], (results[1] if len(results) > 1 else None)
+
+
+def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
+            p2: int | None, auto_landmark: bool, score_rows: torch.Tensor | None,
+            opts: _Options, bg: _Background, timings: dict, trees: _TreeCache,
+            staged: bool) -> tuple[dict, str]:
+    """``method="refine"``: :func:`_refine` once (the full search), or, ``staged``, first from
+    the ``_FIRST_STAGE_SEEDS`` strongest source features with fewer hypotheses refined and
+    upsampled, kept when its choice is clear (:func:`~torchheat.matching.select._clear`), else
+    the full search, which reuses the first stage's refined hypotheses and ZoomOuts (one memo
+    for both; it also holds the landmark search's k-d trees). Returns ``_refine``'s answer and
+    which search gave it."""
+    memo: dict = {"trees": trees}
+    if staged and opts.source_landmarks > _FIRST_STAGE_SEEDS:
+        # the first seeding features' hypotheses; kept when their choice is clear
+        t_q = time.perf_counter()
+        first = dataclasses.replace(
+            opts, source_landmarks=_FIRST_STAGE_SEEDS,
+            refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
+            zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses),
+            # an ambiguous first stage is never clear: the full search decides
+            polished=False, tie_break=False)
+        out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings, memo)
+        timings["first_stage"] = time.perf_counter() - t_q
+        if _clear(out["direct"]):
+            return out, "first stage"
+        search = "full (first stage not clear)"
+    else:
+        search = "full"
+    out = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg, timings, memo)
+    return out, search
 
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
