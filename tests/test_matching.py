@@ -617,6 +617,55 @@ def test_matching_stages_run_blas_on_one_thread(monkeypatch):
     assert all(b == {1} for _, b in seen)
 
 
+def test_blas_limit_shared_by_concurrent_users():
+    # BLAS's thread count is one process-wide setting: two users that enter and leave out of
+    # order (two matches on two threads) share one limit, which only the last one out lifts,
+    # so the caller's count comes back (a plain nested threadpool_limits per user would leave
+    # the limit in place when the first user out restores what it saw: the second one's)
+    import threading
+
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import torchheat.heat.kernel as kernel
+    from torchheat.heat import blas_threads
+
+    def blas() -> set[int]:
+        return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+    depth: dict[str, int] = {}
+    with threadpool_limits(limits=2, user_api="blas"):
+        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+
+        def first():
+            with blas_threads(1):
+                a_in.set()
+                b_in.wait()
+            a_out.set()  # leaves while the second user is still inside
+
+        def second():
+            a_in.wait()
+            with blas_threads(1):
+                depth["both in"] = kernel._BLAS_HELD["depth"]
+                b_in.set()
+                a_out.wait()
+                depth["first left"] = kernel._BLAS_HELD["depth"]
+                held = kernel._BLAS_HELD["limiter"] is not None
+                depth["still limited"] = int(held)
+
+        ts = [threading.Thread(target=first), threading.Thread(target=second)]
+        for t in ts:
+            t.start()
+        for t in ts:
+            t.join()
+        assert depth == {"both in": 2, "first left": 1, "still limited": 1}
+        assert kernel._BLAS_HELD == {"depth": 0, "limiter": None}
+        assert blas() == {2}
+    before = blas()
+    with blas_threads(1):  # and one user in one thread: limited inside, restored after
+        assert blas() == {1}
+    assert blas() == before
+
+
 def test_role_copies_share_the_self_symmetries_and_operators():
     # the two ways of a partial match each match into a role copy of the whole (its times
     # changed): the second copy must see both self-symmetries the first one computed (it saw

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import math
+import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -84,6 +85,10 @@ def threads(n: int | None):
         torch.set_num_threads(old)
 
 
+_BLAS_LOCK = threading.Lock()
+_BLAS_HELD: dict = {"depth": 0, "limiter": None}  # blas_threads: users in the process
+
+
 @contextmanager
 def blas_threads(n: int | None):
     """Temporarily limit numpy's and scipy's BLAS (OpenBLAS, MKL) to ``n`` threads (``None``
@@ -91,9 +96,11 @@ def blas_threads(n: int | None):
 
     The matching stages run their heavy work in torch and call BLAS from numpy on small
     matrices only; there, BLAS threads that busy-wait between calls take the cores from
-    torch's threads and from the background thread (:func:`torchheat.match`, ``background``).
-    Measured on 4 TOSCA 5k pairs, AMD EPYC 2 cores, one BLAS thread instead of two: matches
-    30 % faster with two torch threads, 6 % faster with one, maps identical.
+    torch's threads and from the background thread (:func:`torchheat.match`, ``background``;
+    measured in BENCHMARKS.md, "One BLAS thread inside match"). BLAS's thread count is one
+    setting for the whole process: nested and concurrent uses (a match's background thread,
+    matches run from several threads) share the first one's limit, and the original counts
+    come back when the last one leaves.
 
     Examples
     --------
@@ -107,8 +114,18 @@ def blas_threads(n: int | None):
         return
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=int(n), user_api="blas"):
+    with _BLAS_LOCK:
+        if _BLAS_HELD["depth"] == 0:
+            _BLAS_HELD["limiter"] = threadpool_limits(limits=int(n), user_api="blas")
+        _BLAS_HELD["depth"] += 1
+    try:
         yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_HELD["depth"] -= 1
+            if _BLAS_HELD["depth"] == 0:
+                _BLAS_HELD["limiter"].restore_original_limits()
+                _BLAS_HELD["limiter"] = None
 
 
 @dataclass
