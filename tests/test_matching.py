@@ -929,6 +929,22 @@ def test_tie_break_option_reaches_ambiguous_choices(mirror_pair, monkeypatch):
     assert quality.AMBIGUOUS_BELOW == 0.15  # the report's flag is not touched
 
 
+def test_zoomout_diagnostics_list_the_chosen_candidate(mirror_pair, monkeypatch):
+    """``info["zoomout_candidates"]`` flags exactly one candidate as chosen, the final map's,
+    also when the tie-break took a rival as it was before polishing (a candidate that is no
+    longer in the pool: emulated here by a tie-break that returns a copy)."""
+    from torchheat.matching import select
+
+    S, T, _, _ = mirror_pair
+    monkeypatch.setattr(select, "AMBIGUOUS_BELOW", 1e9)
+    monkeypatch.setattr(select, "_descriptor_tie_break",
+                        lambda src, tgt, rows, direct: {**direct, "zo_tie_break": (0.0, 0.0)})
+    corr = match(S, T, staged=False)
+    chosen = [d for d in corr.info["zoomout_candidates"] if d[4]]
+    assert len(chosen) == 1
+    assert corr.info["tie_break"] == (0.0, 0.0)
+
+
 def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
     S, T, perm, _ = mirror_pair
     calls = _spy(monkeypatch, "_polish_candidates", 5)

@@ -195,12 +195,14 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             and (not opt.orientation or r["zo_orientation"] < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
     # diagnostics: (rows, images, residual, orientation, chosen, landmark-free, tear, kind,
-    # polished) of every ZoomOut candidate
+    # polished) of every ZoomOut candidate, and of the chosen one when the tie-break took a
+    # rival as it was before polishing (one of ``before``, not in ``cands``)
+    listed = cands + ([] if any(r is direct for r in cands) else [direct])
     diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
              bool(r.get("descriptor_seed")), r.get("zo_tear", float("nan")),
              "reoriented" if r.get("reoriented") else "trimmed" if r.get("trimmed") else "",
              bool(r.get("polished")))
-            for r in cands]
+            for r in listed]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for r in (direct, sym):
