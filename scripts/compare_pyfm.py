@@ -40,9 +40,9 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("MKL_NUM_THREADS", "1")
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+for _var in _THREAD_VARS:  # one thread for both tools (before numpy is imported)
+    os.environ.setdefault(_var, "1")
 
 import numpy as np  # noqa: E402
 
@@ -129,9 +129,6 @@ def pairs_of(name: str):
 
 def _path(shape) -> str:
     return str(shape.path)
-
-
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def process_times(src: str, tgt: str, tmp: Path, fine: int | None = None,

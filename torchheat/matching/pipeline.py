@@ -11,7 +11,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import torch
 
 from ..heat import blas_threads, threads
@@ -48,7 +47,7 @@ from .prepared import (
     _role_copy,
 )
 from .quality import MapQuality, map_quality
-from .refine import _dense_final, _fixed_share, _is_identity, _Refiner
+from .refine import _agree, _dense_final, _fixed_share, _is_identity, _Refiner
 from .result import Correspondence, _numbering
 from .select import (
     _DESCR_DIRECT,
@@ -883,8 +882,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
                 continue
             if _is_identity({"g": g}, V, radius, S):
                 continue
-            if np.mean(np.linalg.norm(V[g.numpy()] - V[out[1].numpy()], axis=1)
-                       <= radius) >= _ZO_SAME:
+            if _agree(V, g, out[1], radius) >= _ZO_SAME:
                 continue
             alts.append((S, g))
             break

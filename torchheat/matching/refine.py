@@ -138,12 +138,17 @@ def _dense_final(refiner: _Refiner, g: torch.Tensor, num_threads: int | None,
     return compute
 
 
+def _agree(V: np.ndarray, a: torch.Tensor, b: torch.Tensor, radius: float) -> float:
+    """Share of the positions where two maps' images (vertex indices of ``V``, same length)
+    lie within ``radius`` of each other (Euclidean, inclusive): how much two hypotheses or
+    ZoomOut candidates are the same map."""
+    return float(np.mean(np.linalg.norm(V[a.numpy()] - V[b.numpy()], axis=1) <= radius))
+
+
 def _fixed_share(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
     """Share of the samples that a self-map hypothesis leaves in place: images within
     ``radius`` (Euclidean) of themselves."""
-    s = samples.numpy()
-    g = r["g"].numpy()
-    return float(np.mean(np.linalg.norm(V[g] - V[s], axis=1) <= radius))
+    return _agree(V, r["g"], samples, radius)
 
 
 def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:

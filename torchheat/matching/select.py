@@ -30,7 +30,7 @@ from .orientation import _orientation, _orientation_signs, _triangles
 from .partial import dense_partial_map, partial_zoomout
 from .prepared import PreparedShape, _fps, _memoised
 from .quality import AMBIGUOUS_BELOW, map_quality
-from .refine import _Refiner
+from .refine import _agree, _Refiner
 from .zoomout import ZoomOutResult, dense_spectral_map, fine_map, spectral_map, zoomout
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
@@ -53,8 +53,7 @@ def _distinct_hypotheses(pool: list[dict], Vt: np.ndarray, radius: float, limit:
     of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
     out: list[dict] = []
     for r in sorted(pool, key=lambda r: r["energy"]):
-        if all(np.mean(np.linalg.norm(Vt[r["g"].numpy()] - Vt[o["g"].numpy()], axis=1)
-                       <= radius) < _ZO_SAME for o in out):
+        if all(_agree(Vt, r["g"], o["g"], radius) < _ZO_SAME for o in out):
             out.append(r)
         if len(out) >= limit:
             break
@@ -338,14 +337,13 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     best = min(score(r) for r in cands)
-    leaders: list[np.ndarray] = []
+    leaders: list[torch.Tensor] = []  # ZoomOut images of the maps polished so far
     dropped: set[int] = set()
     for r in sorted((r for r in cands if score(r) <= best + _CLEAR_MARGIN), key=score):
-        P = Vt[r["zo"].images.numpy()]
-        if any(np.mean(np.linalg.norm(P - Q, axis=1) <= radius) >= _ZO_SAME for Q in leaders):
+        if any(_agree(Vt, r["zo"].images, q, radius) >= _ZO_SAME for q in leaders):
             dropped.add(id(r))
             continue
-        leaders.append(P)
+        leaders.append(r["zo"].images)
         g = polish(r["zo"].images[at_samples])
         zo = _memo_zoomout(memo, phi_s, phi_t, samples, g, rows, k_start=_ZO_START_K,
                            k_end=k_sel, targets=targets)
@@ -414,11 +412,9 @@ def _rival(chosen: dict, cands: list[dict], score: Callable[[dict], float],
     rival's dense map :attr:`~torchheat.matching.result.Correspondence.rival_map`."""
     Vt, _ = tgt.mesh.numpy()
     radius = _RIVAL_RADIUS * math.sqrt(tgt.mesh.area())
-    mine = Vt[chosen["zo"].images.numpy()]
     s0 = score(chosen)
     rivals = [r for r in cands if r is not chosen
-              and np.mean(np.linalg.norm(Vt[r["zo"].images.numpy()] - mine, axis=1) <= radius)
-              < _RIVAL_AGREE]
+              and _agree(Vt, r["zo"].images, chosen["zo"].images, radius) < _RIVAL_AGREE]
     if not rivals:
         return None, None
     best = min(rivals, key=score)
@@ -511,9 +507,8 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
         for seed in seeds:
             zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
-            im = zo.images.numpy()
-            if any(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
-                           <= radius) >= _ZO_SAME for o in cands + out):
+            if any(_agree(Vt, zo.images, o["zo"].images, radius) >= _ZO_SAME
+                   for o in cands + out):
                 continue
             out.append({"lms0": [], "g": zo.images[at_samples], "zo": zo,
                         "energy": float("nan"), "orientation": float("nan"),
@@ -567,10 +562,7 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
                        k_end=k_sel, targets=targets)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
-    im = zo.images.numpy()
-
-    agree = [float(np.mean(np.linalg.norm(Vt[im] - Vt[o["zo"].images.numpy()], axis=1)
-                           <= radius)) for o in cands]
+    agree = [_agree(Vt, zo.images, o["zo"].images, radius) for o in cands]
     if any(a >= _ZO_SAME for a in agree):
         return []
     # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
