@@ -351,6 +351,9 @@ def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece)
         match(piece, strip, partial=True, partial_margin=5.0)
     with pytest.raises(MeshError, match="swap the shapes"):
         match(Mesh(V * 1.5, F, name="bigger"), piece, partial=True)
+    for scale in ("auto", "piece", "filled"):  # one shape given twice: no piece and whole
+        with pytest.raises(ValueError, match="needs two shapes"):
+            match(piece, piece, partial=True, partial_scale=scale)
 
 
 def test_partial_on_a_closed_shape_is_a_full_match(spot_piece):
@@ -362,6 +365,40 @@ def test_partial_on_a_closed_shape_is_a_full_match(spot_piece):
     Wm = W
     err = np.linalg.norm(Wm[corr.map.numpy()] - Wm[perm], axis=1) / M.bbox_diagonal()
     assert np.mean(err < 0.05) > 0.9
+
+
+def test_sample_areas_are_the_voronoi_masses_of_the_samples():
+    V, F = generic_sphere(3)
+    s = prepare(Mesh(V * [1.0, 0.7, 0.5], F), k=20)
+    mass = s.hk.vertex_mass.double().numpy()
+    everyone = torch.randperm(s.n)
+    assert torch.equal(partial.sample_areas(s, everyone), torch.from_numpy(mass)[everyone])
+    rows = torch.tensor([0, 5, 17, 40, 99, 150])
+    W = V * [1.0, 0.7, 0.5]
+    nearest = np.argmin(((W[:, None, :] - W[rows.numpy()][None]) ** 2).sum(-1), axis=1)
+    ref = np.array([mass[nearest == i].sum() for i in range(rows.numel())])
+    assert np.allclose(partial.sample_areas(s, rows).numpy(), ref, rtol=1e-12)
+
+
+def test_partial_quality_of_the_identity_on_uneven_vertex_masses():
+    # a capsule's vertex masses span ~120x (rings crowd at the caps' poles): its rectangular
+    # functional map fitted on unweighted rows read the identity 0.69 off orthogonal, and
+    # `--partial` called it suspect; rows weighted by the area they stand for read it exact
+    import trimesh
+
+    from torchheat.matching.quality import map_quality
+
+    c = trimesh.creation.capsule(height=2.0, radius=0.5, count=[24, 24])
+    a, b = prepare(Mesh(c.vertices, c.faces)), prepare(Mesh(c.vertices, c.faces))
+    assert float(a.hk.vertex_mass.max() / a.hk.vertex_mass.min()) > 50
+    q = map_quality(a, b, torch.arange(a.n), ratio=1.0)
+    assert q.defect < 1e-8 and not q.suspect
+    # and a map that folds the capsule onto one half still reads far from orthogonal
+    V = c.vertices
+    folded = torch.as_tensor(np.where(V[:, 2] < 0, np.arange(len(V)),
+                                      np.argmin(((V[:, None] * [1, 1, -1] - V[None]) ** 2)
+                                                .sum(-1), axis=1)))
+    assert map_quality(a, b, folded, ratio=1.0).defect > 0.3
 
 
 def test_cli_partial(spot_piece, tmp_path, capsys):

@@ -48,6 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
 
 from ..descriptors import farthest_point_sampling
 from ..heat import threads
@@ -321,10 +322,19 @@ def _k_source(k: int, ratio: float, limit: int) -> int:
 
 
 def partial_functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch.Tensor,
-                           images: torch.Tensor, k_s: int, k_t: int) -> torch.Tensor:
+                           images: torch.Tensor, k_s: int, k_t: int,
+                           weights: torch.Tensor | None = None) -> torch.Tensor:
     """The ``k_s x k_t`` functional map pulling the target's functions back onto a piece.
 
-    Least squares ``min_C |Phi_M[rows, :k_s] C - Phi_N[images, :k_t]|_F``.
+    Least squares ``min_C |W^1/2 (Phi_M[rows, :k_s] C - Phi_N[images, :k_t])|_F``.
+
+    The system is rectangular: the whole's modes past the piece's ``k_s`` are fitted by the
+    piece's ``k_s`` modes, and how they are fitted depends on how the rows are weighted. The
+    bases are orthonormal in the area inner product, so rows weighted by the area they stand
+    for (``weights``, see :func:`sample_areas`) read the right map's ``C`` as the area
+    projection; unweighted rows read it only where they cover the surface uniformly (a
+    capsule of 578 vertices whose masses span 122x, all vertices as rows: the identity read
+    ``|C C^T - I| / sqrt(k_s)`` 0.69 unweighted, 0.00 weighted).
 
     Parameters
     ----------
@@ -335,6 +345,8 @@ def partial_functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch
     rows, images : torch.Tensor, int64, shape (s,)
         Source samples and their target vertices; ``s >= k_s``.
     k_s, k_t : int
+    weights : torch.Tensor, shape (s,), optional
+        Positive weight of each row (default: all equal).
 
     Returns
     -------
@@ -346,7 +358,47 @@ def partial_functional_map(phi_s: torch.Tensor, phi_t: torch.Tensor, rows: torch
     >>> partial_functional_map(phi, phi, torch.arange(60), torch.arange(60), 4, 8).shape
     torch.Size([4, 8])
     """
-    return lstsq(phi_s[rows, :k_s], phi_t[images, :k_t])
+    A, B = phi_s[rows, :k_s], phi_t[images, :k_t]
+    if weights is not None:
+        w = weights.to(A.dtype).sqrt()[:, None]
+        A, B = A * w, B * w.to(B.dtype)
+    return lstsq(A, B)
+
+
+def sample_areas(shape: PreparedShape, rows: torch.Tensor) -> torch.Tensor:
+    """The area each sample stands for: the lumped masses of the vertices nearest to it
+    (Euclidean Voronoi cells of the samples among the vertices).
+
+    Every vertex as a row gives the lumped masses themselves.
+
+    Parameters
+    ----------
+    shape : PreparedShape
+        n vertices.
+    rows : torch.Tensor, int64, shape (s,)
+        Distinct vertices.
+
+    Returns
+    -------
+    torch.Tensor, float64, shape (s,)
+        Sums to the shape's area at its eigenbasis' scale (the masses ``vertex_mass``).
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=20)
+    >>> a = sample_areas(s, torch.arange(10))
+    >>> bool(torch.isclose(a.sum(), s.hk.vertex_mass.double().sum()))
+    True
+    """
+    mass = shape.hk.vertex_mass.double().cpu()
+    rows = torch.as_tensor(rows, dtype=torch.int64).cpu()
+    if rows.numel() == shape.n:
+        return mass[rows]
+    V, _ = shape.mesh.numpy()
+    owner = cKDTree(V[rows.numpy()]).query(V)[1]
+    return torch.from_numpy(np.bincount(owner, weights=mass.numpy(), minlength=rows.numel()))
 
 
 def _pull_map(Ps: torch.Tensor, Pt_sub: torch.Tensor, C: torch.Tensor, rows: torch.Tensor

@@ -378,6 +378,9 @@ def match(
     if fine_k is not None and (partial or not zoomout or method != "refine"):
         raise ValueError("fine_k refines the spectral maps of whole shapes: it needs "
                          "method='refine', zoomout=True and partial=False")
+    if partial and target is source:
+        # (every way of a partial match would otherwise read it as a self-map)
+        raise ValueError("partial=True needs two shapes: the piece and the whole")
     if partial and partial_scale == "auto" and method == "refine":
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
         return _partial_auto(source, target, kw, match)

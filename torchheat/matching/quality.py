@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from .orientation import orientation_score
-from .partial import partial_functional_map
+from .partial import partial_functional_map, sample_areas
 from .prepared import PreparedShape, _fps
 from .zoomout import functional_map
 
@@ -110,10 +110,11 @@ def map_quality(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
     ratio : float, optional
         For a partial source (``match(..., partial=True)``): its area over the target's. The
         functional map is then rectangular, ``k_s = floor(0.8 ratio k)`` modes of the piece
-        against ``k`` of the whole, pulling the whole's functions back; a right map gives
-        it orthogonal rows, and the defect is ``|r C C^T - I|_F / sqrt(k_s)`` (``r C C^T``:
-        the piece's basis is orthonormal at unit area, ``1 / sqrt(r)`` times its basis at the
-        whole's scale).
+        against ``k`` of the whole, pulling the whole's functions back, fitted on the samples
+        weighted by the area they stand for (:func:`~torchheat.matching.partial.sample_areas`);
+        a right map gives it orthogonal rows, and the defect is ``|r C C^T - I|_F /
+        sqrt(k_s)`` (``r C C^T``: the piece's basis is orthonormal at unit area, ``1 /
+        sqrt(r)`` times its basis at the whole's scale).
     margin : float, optional
         The choice's score margin, if the map was chosen among candidates (see the module
         docstring); sets ``ambiguous``.
@@ -142,8 +143,10 @@ def map_quality(src: PreparedShape, tgt: PreparedShape, fmap: torch.Tensor,
         defect = float(torch.linalg.norm(C.T @ C - torch.eye(k, dtype=C.dtype)) / math.sqrt(k))
     else:
         k_s = int(max(1, min(src.hk.eigenvectors.shape[1], math.floor(PARTIAL_MODES * ratio * k))))
+        # rows weighted by the area they stand for: the rectangular fit depends on it (a right
+        # map of a piece with uneven vertex masses read suspect unweighted)
         C = partial_functional_map(src.hk.eigenvectors, tgt.hk.eigenvectors, rows, fmap[rows],
-                                   k_s, k)
+                                   k_s, k, weights=sample_areas(src, rows))
         # the piece's basis is orthonormal at unit area, i.e. sqrt(1/r) times its basis at
         # the whole's scale: C C^T = I / r for a right map
         defect = float(torch.linalg.norm(ratio * (C @ C.T) - torch.eye(k_s, dtype=C.dtype))
