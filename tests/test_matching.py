@@ -293,6 +293,18 @@ def test_mirror_symmetric_both_maps(mirror_pair):
     assert corr.orientation > 0.9
 
 
+def test_a_target_stored_inside_out_still_gets_the_direct_map(mirror_pair):
+    # the mirror map of an exactly symmetric shape differs from the direct one only in the
+    # turning sense it reads from the faces: a target file wound inside out would swap them
+    S, T, perm, mp = mirror_pair
+    W, G = T.mesh.numpy()
+    inside_out = Mesh(W, G[:, [0, 2, 1]])
+    assert inside_out.turned_outward
+    corr = match(S, inside_out)
+    assert exact(corr.map, perm) >= 0.95
+    assert corr.orientation > 0.9
+
+
 def test_mirror_symmetric_landmark_off_plane(mirror_pair):
     S, T, perm, mp = mirror_pair
     V = S.mesh.numpy()[0]

@@ -709,3 +709,39 @@ def test_mesh_turns_reversed_faces_so_boundaries_and_patches_stay_manifold():
     _, counts = np.unique(np.sort(np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]]),
                                   axis=1), axis=0, return_counts=True)
     assert (counts == 2).all()
+
+
+def _signed_volume(V, F):
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+
+
+def test_a_surface_wound_inside_out_is_turned_outward():
+    from torchheat.topology import orient_outward
+
+    m = trimesh.creation.icosphere(3)
+    V, F = np.asarray(m.vertices) * [1.0, 0.8, 0.6] + [3.0, -2.0, 1.0], np.asarray(m.faces)
+    assert _signed_volume(V, F) > 0  # trimesh winds outward
+    inv = F[:, [0, 2, 1]]
+    # closed: the enclosed volume's sign (the same from any origin)
+    assert orient_outward(V, F)[1] is False
+    G, turned = orient_outward(V, inv)
+    assert turned and np.array_equal(G, F)
+    mesh = Mesh(V, inv, name="inside-out")
+    assert mesh.turned_outward and mesh.flipped_faces == len(F)
+    assert np.array_equal(mesh.faces.numpy(), F)
+    assert not Mesh(V, F).turned_outward and Mesh(V, F).flipped_faces == 0
+    # and some faces also reversed against their neighbours: all face outward after load
+    G, turned_some = _flip_some(inv, share=0.05)
+    mesh = Mesh(V, G)
+    assert mesh.turned_outward and np.array_equal(mesh.faces.numpy(), F)
+    assert mesh.flipped_faces == len(F) - turned_some.sum()
+    # with holes: read once they are closed
+    V, F = _holed_sphere()
+    assert orient_outward(V, F)[1] is False
+    assert Mesh(V, F[:, [0, 2, 1]]).turned_outward
+    # a flat patch encloses nothing: the file's winding is kept either way
+    grid = np.asarray(trimesh.creation.box().vertices)[:4]  # the corners of the side x = -0.5
+    Fg = np.array([[0, 1, 3], [0, 3, 2]])
+    for faces in (Fg, Fg[:, [0, 2, 1]]):
+        assert not Mesh(grid, faces).turned_outward

@@ -179,7 +179,7 @@ def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
     import numpy as np
 
     from .geometry import face_areas
-    from .topology import FILLED_LEAST, fill_holes, orient_faces
+    from .topology import FILLED_LEAST, fill_holes, orient_faces, orient_outward
 
     (V, F), (Vt, Ft) = solved[0], solved[1]
     if not (_plausible(V, F) and _plausible(Vt, Ft)):
@@ -187,6 +187,7 @@ def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
     V, F = np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64)
     try:
         F = orient_faces(F, len(V))[0]  # as Mesh turns them (SHREC'16's david and michael)
+        F = orient_outward(V, F)[0]
         V2, F2 = fill_holes(V, F)
     except Exception:  # noqa: BLE001 - the match itself reports what is wrong with the piece
         return None
@@ -329,9 +330,13 @@ def _in_files(idx: Any, vertex_map: Any) -> list[int]:
 
 
 def _pieces(mesh: Any) -> str:
-    """`` (largest component: k of n vertices, n - k written as -1)`` or ``""``."""
+    """`` (largest component: k of n vertices, n - k written as -1)`` or ``""``, and a note
+    when the surface was wound inside out (its faces reversed at load)."""
     n, n_in = mesh.n_vertices, mesh.n_input_vertices
-    return "" if n == n_in else f" ({n} in the largest connected component, {n_in - n} dropped)"
+    out = "" if n == n_in else f" ({n} in the largest connected component, {n_in - n} dropped)"
+    if getattr(mesh, "turned_outward", False):
+        out += " (wound inside out: its faces were reversed to face outward)"
+    return out
 
 
 def _fmt_pairs(pairs: Sequence[tuple[int, int]], k: int = 5) -> str:

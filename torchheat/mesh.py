@@ -29,7 +29,10 @@ Conventions
   is reversed, :attr:`Mesh.flipped_faces` counts them; vertex order and indices are kept), since
   normals, boundary loops and the mirror-image test read the faces' turning sense (SHREC'16's
   michael and david, and TOSCA hires's horse5/6, centaur3/4 and david0/1, have patches of
-  reversed faces); a mesh that cannot be oriented raises a :class:`MeshWarning`.
+  reversed faces); a mesh that cannot be oriented raises a :class:`MeshWarning`. A surface
+  wound inside out (negative enclosed volume, its holes closed first) has every face reversed
+  (:func:`torchheat.topology.orient_outward`, :attr:`Mesh.turned_outward`): matched to a shape
+  stored outward it would otherwise take the mirror map for the direct one.
 * A face is degenerate when its area is ``<= 1e-12 * d**2`` with ``d`` the bounding-box
   diagonal; faces with a repeated vertex are always degenerate.
 * Validation is vectorised (numpy, ``scipy.sparse.csgraph``): about 50 ms for a 60k-vertex
@@ -64,6 +67,7 @@ from .topology import (
     components,
     edge_keys,
     orient_faces,
+    orient_outward,
     restrict_faces,
 )
 from .topology import largest_component as _largest_component
@@ -265,13 +269,17 @@ class Mesh:
         self.vertices = V
         self.faces = F
         self.vertex_map = vertex_map
-        #: Faces whose vertex order was reversed to agree with their neighbours (``check=True``)
+        #: Faces whose vertex order was reversed (``check=True``): to agree with their
+        #: neighbours, and all of them when the surface was wound inside out
         self.flipped_faces = 0
+        #: Whether every face was reversed because the surface was wound inside out
+        #: (:func:`torchheat.topology.orient_outward`; ``check=True``)
+        self.turned_outward = False
         if check:
             self._check_degenerate(Vn, Fn)
             self._check_unreferenced(Fn, n)
             self._check_topology()
-            self._orient(Fn, n)
+            self._orient(Vn, Fn, n)
 
     # ------------------------------------------------------------------ checks
     def _label(self) -> str:
@@ -354,7 +362,7 @@ class Mesh:
                 stacklevel=3,
             )
 
-    def _orient(self, F: np.ndarray, n: int) -> None:
+    def _orient(self, V: np.ndarray, F: np.ndarray, n: int) -> None:
         F2, flipped, orientable = orient_faces(F, n)
         if not orientable:
             warnings.warn(
@@ -364,7 +372,12 @@ class Mesh:
                 MeshWarning,
                 stacklevel=3,
             )
-        elif flipped:
+            return
+        F2, turned = orient_outward(V, F2)
+        if turned:  # wound inside out: every face reversed, those turned above back again
+            flipped = len(F2) - flipped
+            self.turned_outward = True
+        if flipped:
             self.faces = torch.from_numpy(F2)
             self.flipped_faces = flipped
 
@@ -573,6 +586,8 @@ class Mesh:
         new.vertex_map = self.vertex_map
         new.n_input_vertices = self.n_input_vertices
         new._edge_cache = self._edge_cache
+        new.flipped_faces = getattr(self, "flipped_faces", 0)
+        new.turned_outward = getattr(self, "turned_outward", False)
         Vn = V.detach().numpy()
         new._check_finite(Vn)
         new._check_degenerate(Vn, self.faces.numpy())

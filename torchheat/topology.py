@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 __all__ = ["edge_keys", "adjacency_from_keys", "components", "largest_component", "restrict_faces",
-           "orient_faces", "boundary_loops", "fill_holes"]
+           "orient_faces", "orient_outward", "boundary_loops", "fill_holes"]
 
 
 def edge_keys(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -257,8 +257,11 @@ def orient_faces(F: np.ndarray, n: int) -> tuple[np.ndarray, int, bool]:
 def _boundary_halfedges(F: np.ndarray, n: int) -> np.ndarray:
     """Face edges ``a -> b`` whose reverse no face has, int64 ``(b, 2)``, sorted by ``(a, b)``."""
     he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
-    key = he[:, 0] * np.int64(n) + he[:, 1]
-    bnd = he[~np.isin(he[:, 1] * np.int64(n) + he[:, 0], key)]
+    key = np.sort(he[:, 0] * np.int64(n) + he[:, 1])
+    rev = he[:, 1] * np.int64(n) + he[:, 0]
+    # membership by binary search in the sorted keys (np.isin hashes: 4x slower at 180k)
+    at = np.minimum(np.searchsorted(key, rev), max(key.size - 1, 0))
+    bnd = he[~(key[at] == rev)] if key.size else he
     return bnd[np.lexsort((bnd[:, 1], bnd[:, 0]))]
 
 
@@ -428,3 +431,70 @@ def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
 
 #: Most concentric rings of a filled hole (:func:`fill_holes`)
 _FILL_RINGS = 8
+
+
+#: Enclosed volume, as a share of ``area^1.5``, below which a surface's inside is not read
+#: (a nearly flat patch closed by its own hole encloses almost nothing; a sphere reads 0.094,
+#: the thinnest shape of the shared data, a closed SHREC'16 piece, 0.024)
+_INSIDE_LEAST = 1e-3
+
+
+def orient_outward(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Consistently oriented faces turned to face outward when the surface is wound inside out.
+
+    The surface's enclosed volume is signed by the faces' turning sense (positive when they
+    turn counter-clockwise seen from outside, the usual convention). A closed surface
+    encloses its own volume; a surface with holes is first closed by :func:`fill_holes`
+    (one fan per hole). If that volume is negative, every face is reversed (``[a, b, c] ->
+    [a, c, b]``, vertex order kept); if it is below ``1e-3 area^1.5`` in size (a nearly flat
+    patch: no inside to read), the faces are kept as given.
+
+    Why: the orientation of a map (which tells a shape from its mirror image) is read from the
+    faces' turning sense, so a shape stored inside out (a negative scale in an exporter, a
+    scanner's winding) matched to one stored outward would take the mirror map for the
+    direct one.
+
+    Parameters
+    ----------
+    V : numpy.ndarray of float, shape (n, 3)
+    F : numpy.ndarray of int, shape (m, 3)
+        Consistently oriented faces (:func:`orient_faces`).
+
+    Returns
+    -------
+    F2 : numpy.ndarray of int64, shape (m, 3)
+        ``F`` or every face reversed.
+    turned : bool
+        Whether the faces were reversed.
+
+    Notes
+    -----
+    Cost: one pass over the faces, plus :func:`fill_holes` for a surface with boundaries
+    (``O(m log m)``).
+
+    Examples
+    --------
+    >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    >>> F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # outward
+    >>> orient_outward(V, F)[1], orient_outward(V, F[:, [0, 2, 1]])[1]
+    (False, True)
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    if len(F) == 0:
+        return F, False
+    if _boundary_halfedges(F, len(V)).size:
+        try:
+            Vc, Fc = fill_holes(V, F, rings=False)
+        except Exception:  # noqa: BLE001 - holes that cannot be closed: no inside to read
+            return F, False
+    else:
+        Vc, Fc = V, F
+    P = Vc - Vc.mean(axis=0)  # the volume does not depend on the origin; rounding does
+    a, b, c = P[Fc[:, 0]], P[Fc[:, 1]], P[Fc[:, 2]]
+    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+    e1, e2 = V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
+    area = float(np.linalg.norm(np.cross(e1, e2), axis=1).sum()) / 2.0
+    if volume >= -_INSIDE_LEAST * area**1.5:
+        return F, False
+    return F[:, [0, 2, 1]], True
