@@ -745,3 +745,38 @@ def test_a_surface_wound_inside_out_is_turned_outward():
     Fg = np.array([[0, 1, 3], [0, 3, 2]])
     for faces in (Fg, Fg[:, [0, 2, 1]]):
         assert not Mesh(grid, faces).turned_outward
+
+
+def _seamed_ellipsoid():
+    """An ellipsoid whose faces with x > 0 use copies of their vertices: two components that
+    meet along a seam of duplicated vertices (as UV-mapped exports store a surface)."""
+    m = trimesh.creation.icosphere(3)
+    V, F = np.asarray(m.vertices) * [1.0, 0.8, 0.6], np.asarray(m.faces, dtype=np.int64)
+    right = V[F].mean(axis=1)[:, 0] > 0
+    left_used = np.unique(F[~right])
+    right_used = np.unique(F[right])
+    shared = np.intersect1d(left_used, right_used)
+    copy = {int(v): len(V) + i for i, v in enumerate(shared)}
+    G = F.copy()
+    G[right] = np.vectorize(lambda v: copy.get(int(v), int(v)))(F[right])
+    return np.vstack([V, V[shared]]), G, shared.size
+
+
+def test_components_meeting_at_a_seam_of_duplicated_vertices_are_named():
+    V, F, seam = _seamed_ellipsoid()
+    with pytest.raises(MeshError, match=f"meet at {seam} coincident vertices") as err:
+        Mesh(V, F, name="seamed")
+    assert "merge the duplicate vertices" in str(err.value)
+    with pytest.warns(MeshWarning, match=f"meet the kept one at {seam} coincident vertices"):
+        kept = Mesh(V, F, name="seamed", largest_component=True)
+    assert kept.n_vertices < len(V)
+    # components apart: the plain advice, and no warning when the largest is kept
+    a = trimesh.creation.icosphere(2)
+    W = np.vstack([a.vertices, a.vertices + [3.0, 0, 0]])
+    G = np.vstack([a.faces, a.faces + len(a.vertices)])
+    with pytest.raises(MeshError, match="connected components") as err:
+        Mesh(W, G)
+    assert "coincident" not in str(err.value)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MeshWarning)
+        Mesh(W, G, largest_component=True)

@@ -21,7 +21,9 @@ Conventions
   ``ValueError``) whose message starts with the file path or mesh name, says what is wrong and
   what to do: missing / unreadable / unsupported files, meshes without faces, non-triangle
   faces, non-finite coordinates, face indices out of range, degenerate (zero-area) faces,
-  unreferenced vertices, and several connected components. Non-manifold **edges** (shared by
+  unreferenced vertices, and several connected components (components that meet at
+  coincident vertices are named a seam of duplicated vertices, to be merged; keeping the
+  largest of them warns). Non-manifold **edges** (shared by
   more than two faces) only raise a :class:`MeshWarning`: such meshes still give a usable
   Laplacian, but results near those edges are less reliable. Non-manifold (pinched) vertices
   and boundaries are accepted silently: all areas are unsigned. Faces oriented against their
@@ -255,6 +257,19 @@ class Mesh:
             if kept is None:
                 self._edge_cache = (keys, counts)
             else:
+                inside = np.zeros(n, dtype=np.int64)
+                inside[kept] = 1
+                seam = _shared_positions(Vn, inside)
+                if seam:
+                    warnings.warn(
+                        f"{label}: the dropped components meet the kept one at "
+                        f"{_plural(seam, 'coincident vertex')}: a seam of duplicated vertices "
+                        "(as UV-mapped exports store it) cuts the surface, and only one side "
+                        "is matched; merge the duplicate vertices instead (trimesh's "
+                        "merge_vertices, MeshLab 'Merge Close Vertices')",
+                        MeshWarning,
+                        stacklevel=2,
+                    )
                 Fn = restrict_faces(Fn, kept, n)
                 Vn = Vn[kept]
                 V = V[torch.from_numpy(kept)].contiguous()
@@ -344,6 +359,16 @@ class Mesh:
         if ncomp > 1:
             sizes = np.sort(np.bincount(labels, minlength=ncomp))[::-1]
             shown = ", ".join(str(int(s)) for s in sizes[:10]) + (", ..." if ncomp > 10 else "")
+            seam = _shared_positions(self.vertices.numpy(), labels)
+            if seam:
+                raise MeshError(
+                    f"{self._label()}: mesh has {ncomp} connected components (vertex counts "
+                    f"{shown}) that meet at {_plural(seam, 'coincident vertex')}: the surface "
+                    "is cut along a seam of duplicated vertices (as UV-mapped exports store "
+                    "it); merge the duplicate vertices (trimesh's merge_vertices, MeshLab "
+                    "'Merge Close Vertices') and renumber any correspondences, since "
+                    "--largest-component / largest_component=True would keep one side only"
+                )
             raise MeshError(
                 f"{self._label()}: mesh has {ncomp} connected components (vertex counts "
                 f"{shown}); keep the largest one with --largest-component on the command line "
@@ -595,6 +620,15 @@ class Mesh:
 
     def __repr__(self) -> str:
         return f"Mesh(name={self.name!r}, n_vertices={self.n_vertices}, n_faces={self.n_faces})"
+
+
+def _shared_positions(V: np.ndarray, labels: np.ndarray) -> int:
+    """Number of distinct vertex positions held by vertices of more than one label (exact
+    coordinates): where connected components meet along a seam of duplicated vertices."""
+    _, pos = np.unique(V, axis=0, return_inverse=True)
+    pos = pos.ravel()
+    pairs = np.unique(np.stack([pos, labels.astype(np.int64)], axis=1), axis=0)
+    return int((np.bincount(pairs[:, 0]) > 1).sum())
 
 
 def load_mesh(
