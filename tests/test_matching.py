@@ -305,6 +305,18 @@ def test_a_target_stored_inside_out_still_gets_the_direct_map(mirror_pair):
     assert corr.orientation > 0.9
 
 
+def test_match_takes_paths_trimeshes_and_arrays(tmp_path):
+    V, F = mirror_mesh(2, scale=(1.0, 0.6, 0.45))
+    W, G, perm = moved_copy(V, F, seed=5)
+    ref = match(Mesh(V, F), Mesh(W, G)).map
+    path = tmp_path / "target.off"
+    trimesh.Trimesh(W, G, process=False).export(path)
+    for src, tgt in ((trimesh.Trimesh(V, F, process=False), str(path)), ((V, F), path)):
+        assert torch.equal(match(src, tgt).map, ref)
+    with pytest.raises(TypeError, match="vertices, faces"):
+        match(Mesh(V, F), 42)
+
+
 def test_mirror_symmetric_landmark_off_plane(mirror_pair):
     S, T, perm, mp = mirror_pair
     V = S.mesh.numpy()[0]

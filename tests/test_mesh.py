@@ -780,3 +780,24 @@ def test_components_meeting_at_a_seam_of_duplicated_vertices_are_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", MeshWarning)
         Mesh(W, G, largest_component=True)
+
+
+def test_as_mesh_takes_what_users_hold(tmp_path):
+    from torchheat import as_mesh
+
+    s = trimesh.creation.icosphere(2)
+    V, F = np.asarray(s.vertices), np.asarray(s.faces)
+    path = tmp_path / "ico.off"
+    s.export(path)
+    base = Mesh(V, F)
+    assert as_mesh(base) is base
+    for x in (s, (V, F), [V, F], str(path), path):
+        m = as_mesh(x)
+        assert np.allclose(m.vertices.numpy(), V) and np.array_equal(m.faces.numpy(), F)
+    assert as_mesh(str(path)).name == str(path)
+    with pytest.raises(TypeError, match="a .vertices, faces. pair; got int"):
+        as_mesh(3)
+    with pytest.raises(MeshError, match="no such file"):
+        as_mesh(tmp_path / "missing.off")
+    with pytest.raises(MeshError, match="connected components"):  # validated as a Mesh
+        as_mesh((np.vstack([V, V + 3]), np.vstack([F, F + len(V)])))

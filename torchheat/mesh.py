@@ -74,7 +74,7 @@ from .topology import (
 )
 from .topology import largest_component as _largest_component
 
-__all__ = ["Mesh", "MeshError", "MeshWarning", "load_mesh", "SUPPORTED_FORMATS"]
+__all__ = ["Mesh", "MeshError", "MeshWarning", "as_mesh", "load_mesh", "SUPPORTED_FORMATS"]
 
 #: Relative area threshold of degenerate faces: ``area <= DEGENERATE_REL_AREA * diag**2``.
 DEGENERATE_REL_AREA = 1e-12
@@ -620,6 +620,55 @@ class Mesh:
 
     def __repr__(self) -> str:
         return f"Mesh(name={self.name!r}, n_vertices={self.n_vertices}, n_faces={self.n_faces})"
+
+
+def as_mesh(x: Any) -> Mesh:
+    """A :class:`Mesh` from what a user holds: a Mesh (itself), a file path (:func:`load_mesh`),
+    an object with ``vertices`` and ``faces`` (or ``triangles``) arrays (``trimesh.Trimesh``,
+    Open3D's ``TriangleMesh``, ...), or a ``(vertices, faces)`` pair of arrays.
+
+    Validated as :class:`Mesh` validates (vertex order kept; several components refused).
+
+    Parameters
+    ----------
+    x : Mesh, str, os.PathLike, mesh-like object or (array_like, array_like)
+        Vertices of shape (n, 3) and triangle faces of shape (m, 3), zero-based.
+
+    Returns
+    -------
+    Mesh
+
+    Raises
+    ------
+    TypeError
+        Anything else.
+    MeshError
+        What :class:`Mesh` or :func:`load_mesh` refuse.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(1)
+    >>> as_mesh(s).n_vertices, as_mesh((s.vertices, s.faces)).n_faces
+    (42, 80)
+    """
+    if isinstance(x, Mesh):
+        return x
+    if isinstance(x, str | os.PathLike):
+        return load_mesh(x)
+    V = getattr(x, "vertices", None)
+    F = getattr(x, "faces", None)
+    if F is None:
+        F = getattr(x, "triangles", None)  # Open3D
+    if V is not None and F is not None:
+        meta = getattr(x, "metadata", None)
+        name = meta.get("file_name") if isinstance(meta, dict) else None
+        return Mesh(np.asarray(V), np.asarray(F), name=name or type(x).__name__)
+    if isinstance(x, tuple | list) and len(x) == 2:
+        return Mesh(np.asarray(x[0]), np.asarray(x[1]))
+    raise TypeError(
+        f"expected a mesh: a torchheat.Mesh, a file path, an object with vertices and faces "
+        f"arrays (e.g. trimesh.Trimesh) or a (vertices, faces) pair; got {type(x).__name__}")
 
 
 def _shared_positions(V: np.ndarray, labels: np.ndarray) -> int:

@@ -113,9 +113,11 @@ def match(
     Parameters
     ----------
     source, target : Mesh, PreparedShape or torchheat.datasets.Shape
-        Shapes M (n vertices) and N (m vertices). A dataset shape's cached eigenpairs are
-        used (see :func:`prepare`): with a :class:`~torchheat.datasets.Preprocess`, no
-        eigensolve runs. A :class:`torchheat.datasets.Pair` may be passed as ``source`` alone
+        Shapes M (n vertices) and N (m vertices); also what :func:`torchheat.as_mesh` takes
+        (a file path, a ``trimesh.Trimesh``, a ``(vertices, faces)`` pair). A dataset
+        shape's cached eigenpairs are used (see :func:`prepare`): with a
+        :class:`~torchheat.datasets.Preprocess`, no eigensolve runs. A
+        :class:`torchheat.datasets.Pair` may be passed as ``source`` alone
         (``match(pair)`` is ``match(pair.source, pair.target)``).
     landmark : int or (int, int), optional
         Source landmark ``p`` (default: the strongest feature point), or a known pair

@@ -24,7 +24,7 @@ from ..descriptors import (
 )
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
-from ..mesh import Mesh, MeshError
+from ..mesh import Mesh, MeshError, as_mesh
 
 __all__ = ["CachedShape", "PreparedShape", "ShapeCaches", "is_cached_shape", "prepare"]
 
@@ -236,7 +236,7 @@ def is_cached_shape(x: Any) -> bool:
 
 
 def prepare(
-    mesh: Mesh | CachedShape,
+    mesh: Mesh | CachedShape | Any,
     times: str | Sequence[float] | torch.Tensor | None = "adaptive",
     *,
     feature_time: float = 0.05,
@@ -253,8 +253,9 @@ def prepare(
 
     Parameters
     ----------
-    mesh : Mesh or torchheat.datasets.Shape
-        A mesh, or a shape of a dataset (:class:`torchheat.datasets.ShapeCollection`): its
+    mesh : Mesh, torchheat.datasets.Shape, or what :func:`torchheat.as_mesh` takes
+        A mesh (or a file path, a ``trimesh.Trimesh``, a ``(vertices, faces)`` pair), or a
+        shape of a dataset (:class:`torchheat.datasets.ShapeCollection`): its
         cached eigenpairs (``shape.data``, from the collection's :class:`~torchheat.datasets.
         Preprocess` and disk cache) are used, so no eigensolve runs; a shape without cached
         data is prepared from its mesh.
@@ -321,8 +322,8 @@ def prepare(
         if hk is None and eigenpairs is None and shape.data is not None:
             hk = _cached_heat_kernel(shape, times, k, rtol, kind, boundary, num_threads)
             cached = (shape.data["eigenvalues"], shape.data["eigenvectors"])
-    elif not isinstance(mesh, Mesh):
-        raise TypeError(f"expected a Mesh or a dataset Shape, got {type(mesh).__name__}")
+    else:
+        mesh = as_mesh(mesh)  # a path, a trimesh, (V, F): loaded and checked as a Mesh
     k = DEFAULT_EIGENPAIRS if k is None else k
     _check_matchable(mesh, k if hk is None else hk.k)
     if hk is None:
@@ -416,7 +417,13 @@ def _as_prepared(x, **kw) -> PreparedShape:
         return x
     if isinstance(x, Mesh) or is_cached_shape(x):
         return prepare(x, **kw)
-    raise TypeError(f"expected a Mesh, PreparedShape or dataset Shape, got {type(x).__name__}")
+    try:
+        mesh = as_mesh(x)
+    except TypeError:
+        raise TypeError(f"expected a Mesh, PreparedShape or dataset Shape, a file path, an "
+                        f"object with vertices and faces arrays (e.g. trimesh.Trimesh) or a "
+                        f"(vertices, faces) pair; got {type(x).__name__}") from None
+    return prepare(mesh, **kw)
 
 
 # ------------------------------------------------------------------------------------------

@@ -29,7 +29,8 @@ def symmetry(
     Parameters
     ----------
     mesh : Mesh, PreparedShape or torchheat.datasets.Shape
-        A dataset shape's cached eigenpairs are used (see :func:`prepare`).
+        Or what :func:`torchheat.as_mesh` takes (a file path, a trimesh, ``(V, F)``). A
+        dataset shape's cached eigenpairs are used (see :func:`prepare`).
     **options
         Passed to :func:`match`.
 
