@@ -497,3 +497,25 @@ def test_cli_prints_own_warnings_only(tmp_path, monkeypatch, capsys):
     assert lines[0] == (f"torchheat: warning: {cloud}: 1 non-manifold edge (shared by more "
                         "than two faces)")
     assert len(lines) == 2 and lines[1].startswith(f"torchheat: error: {cloud}: file has no")
+
+
+def test_cli_turns_an_inside_out_target_and_reports_it(tmp_path, capsys):
+    import json
+
+    from test_matching import mirror_mesh, mirror_permutation, moved_copy
+
+    V, F = mirror_mesh(3)
+    mp = mirror_permutation(V)
+    W, G, perm = moved_copy(V, F, seed=4)
+    a = write_off(tmp_path / "a.off", V, F)
+    b = write_off(tmp_path / "b_inside_out.off", W, G[:, [0, 2, 1]])
+    out, rep = tmp_path / "m.txt", tmp_path / "r.json"
+    assert main(["match", str(a), str(b), "-o", str(out), "--report", str(rep),
+                 "--threads", "1"]) == 0
+    assert "wound inside out" in capsys.readouterr().out
+    f = np.loadtxt(out, dtype=np.int64)
+    assert np.mean(f == perm) > 0.95 and np.mean(f == perm[mp]) < 0.2  # not the mirror map
+    r = json.loads(rep.read_text())
+    assert r["repairs"]["target"] == {"flipped_faces": len(G), "turned_outward": True,
+                                      "dropped_vertices": 0}
+    assert r["repairs"]["source"]["turned_outward"] is False

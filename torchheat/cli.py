@@ -393,11 +393,22 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))
 
 
-def _write_report(path: Path, corr: Any, source: str, target: str) -> None:
+def _repairs(mesh: Any) -> dict:
+    """What loading changed in a file (JSON-able): faces reversed, whether the whole surface
+    was turned outward, vertices dropped with ``--largest-component``."""
+    return {"flipped_faces": int(getattr(mesh, "flipped_faces", 0)),
+            "turned_outward": bool(getattr(mesh, "turned_outward", False)),
+            "dropped_vertices": int(mesh.n_input_vertices - mesh.n_vertices)}
+
+
+def _write_report(path: Path, corr: Any, source: str, target: str,
+                  meshes: tuple[Any, Any] | None = None) -> None:
     import json
     import re
 
     rep = {"source": str(source), "target": str(target), **corr.report()}
+    if meshes is not None:  # what loading repaired in each file
+        rep["repairs"] = {"source": _repairs(meshes[0]), "target": _repairs(meshes[1])}
     svm, tvm = corr.source_vertex_map, corr.target_vertex_map  # file indices, as the map
     rep["landmarks"] = [list(p) for p in zip(_in_files([a for a, _ in corr.landmarks], svm),
                                              _in_files([b for _, b in corr.landmarks], tvm),
@@ -469,7 +480,8 @@ def _cmd_match(args: argparse.Namespace) -> int:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
-                       lambda p: _write_report(p, corr, args.source, args.target))
+                       lambda p: _write_report(p, corr, args.source, args.target,
+                                               (source, target)))
         if sym_out is not None and corr.symmetric_map is not None:
             outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
         if rival_out is not None and corr.rival_map is not None:
@@ -522,7 +534,7 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
         outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the file's numbering
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
-                       lambda p: _write_report(p, corr, args.mesh, args.mesh))
+                       lambda p: _write_report(p, corr, args.mesh, args.mesh, (mesh, mesh)))
         if png is not None:
             from .viz import color_transfer
 
@@ -732,7 +744,8 @@ def _add_refinement(p: argparse.ArgumentParser) -> None:
                         "background workers)")
     p.add_argument("--report", metavar="PATH.json", default=None,
                    help="also write a JSON report: files, vertex counts, method, landmarks, "
-                        "orientation, quality (0..1), suspect, timings")
+                        "orientation, quality (0..1), suspect, timings, and what loading "
+                        "repaired in each file (faces reversed, dropped vertices)")
 
 
 def _add_largest_component(p: argparse.ArgumentParser, what: str) -> None:
