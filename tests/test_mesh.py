@@ -791,9 +791,13 @@ def test_as_mesh_takes_what_users_hold(tmp_path):
     s.export(path)
     base = Mesh(V, F)
     assert as_mesh(base) is base
-    for x in (s, (V, F), [V, F], str(path), path):
+    from types import SimpleNamespace
+
+    pyg = SimpleNamespace(pos=torch.from_numpy(V).float(), face=torch.from_numpy(F.T.copy()))
+    for x in (s, (V, F), [V, F], str(path), path, pyg):
         m = as_mesh(x)
-        assert np.allclose(m.vertices.numpy(), V) and np.array_equal(m.faces.numpy(), F)
+        assert np.allclose(m.vertices.numpy(), V, atol=1e-6)
+        assert np.array_equal(m.faces.numpy(), F)
     assert as_mesh(str(path)).name == str(path)
     with pytest.raises(TypeError, match="a .vertices, faces. pair; got int"):
         as_mesh(3)

@@ -625,7 +625,8 @@ class Mesh:
 def as_mesh(x: Any) -> Mesh:
     """A :class:`Mesh` from what a user holds: a Mesh (itself), a file path (:func:`load_mesh`),
     an object with ``vertices`` and ``faces`` (or ``triangles``) arrays (``trimesh.Trimesh``,
-    Open3D's ``TriangleMesh``, ...), or a ``(vertices, faces)`` pair of arrays.
+    Open3D's ``TriangleMesh``, ...), a PyTorch Geometric ``Data`` (``pos`` and ``face`` of
+    shape (3, m)), or a ``(vertices, faces)`` pair of arrays.
 
     Validated as :class:`Mesh` validates (vertex order kept; several components refused).
 
@@ -664,11 +665,22 @@ def as_mesh(x: Any) -> Mesh:
         meta = getattr(x, "metadata", None)
         name = meta.get("file_name") if isinstance(meta, dict) else None
         return Mesh(np.asarray(V), np.asarray(F), name=name or type(x).__name__)
+    pos, face = getattr(x, "pos", None), getattr(x, "face", None)
+    if pos is not None and face is not None:  # PyTorch Geometric's Data: face is (3, m)
+        return Mesh(_numpy_of(pos), _numpy_of(face).T, name=type(x).__name__)
     if isinstance(x, tuple | list) and len(x) == 2:
         return Mesh(np.asarray(x[0]), np.asarray(x[1]))
     raise TypeError(
         f"expected a mesh: a torchheat.Mesh, a file path, an object with vertices and faces "
-        f"arrays (e.g. trimesh.Trimesh) or a (vertices, faces) pair; got {type(x).__name__}")
+        f"arrays (e.g. trimesh.Trimesh), a PyTorch Geometric Data (pos, face) or a "
+        f"(vertices, faces) pair; got {type(x).__name__}")
+
+
+def _numpy_of(a: Any) -> np.ndarray:
+    """A torch tensor (any device) or array-like as a numpy array."""
+    if isinstance(a, torch.Tensor):
+        return a.detach().cpu().numpy()
+    return np.asarray(a)
 
 
 def _shared_positions(V: np.ndarray, labels: np.ndarray) -> int:

@@ -421,8 +421,9 @@ def _as_prepared(x, **kw) -> PreparedShape:
         mesh = as_mesh(x)
     except TypeError:
         raise TypeError(f"expected a Mesh, PreparedShape or dataset Shape, a file path, an "
-                        f"object with vertices and faces arrays (e.g. trimesh.Trimesh) or a "
-                        f"(vertices, faces) pair; got {type(x).__name__}") from None
+                        f"object with vertices and faces arrays (e.g. trimesh.Trimesh), a "
+                        f"PyTorch Geometric Data or a (vertices, faces) pair; got "
+                        f"{type(x).__name__}") from None
     return prepare(mesh, **kw)
 
 
