@@ -196,6 +196,12 @@ class Mesh:
     n_input_vertices : int
         Number of vertices of the input, those dropped by ``largest_component=True``
         included (``n_vertices`` unless some were dropped).
+    flipped_faces : int
+        Faces whose vertex order was reversed at load (``check=True``): those turned against
+        their neighbours, or all of them when the surface was wound inside out.
+    turned_outward : bool
+        Whether the surface was wound inside out and every face was reversed
+        (:func:`torchheat.topology.orient_outward`).
 
     Raises
     ------
@@ -208,7 +214,9 @@ class Mesh:
     -----
     MeshWarning
         Non-manifold edges (shared by more than two faces). This is a warning, not an error:
-        the operators still work, and some public datasets contain a few such edges.
+        the operators still work, and some public datasets contain a few such edges. Also
+        faces that cannot be oriented consistently, and ``largest_component=True`` dropping
+        components that meet the kept one at coincident vertices (a seam).
 
     Examples
     --------
