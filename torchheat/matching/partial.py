@@ -62,7 +62,7 @@ from .fmap import (
 )
 from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
 from .prepared import PreparedShape, ShapeCaches, _fps, _role_copy
-from .refine import _refine_factors
+from .refine import _agree, _refine_factors
 from .zoomout import ZoomOutResult, _sizes, lstsq
 
 __all__ = [
@@ -642,10 +642,10 @@ AGREE_RADIUS = 0.15
 
 def _agreement(tgt: PreparedShape, images: torch.Tensor, other: torch.Tensor) -> float:
     """Share of the positions where two arrays of target vertices lie within
-    ``AGREE_RADIUS sqrt(area(N))`` of each other (Euclidean)."""
-    Vt = torch.as_tensor(tgt.mesh.numpy()[0])
-    radius = AGREE_RADIUS * math.sqrt(tgt.mesh.area())
-    return float(((Vt[images] - Vt[other]).norm(dim=1) < radius).double().mean())
+    ``AGREE_RADIUS sqrt(area(N))`` of each other (:func:`~.refine._agree` at a piece's
+    radius)."""
+    V, _ = tgt.mesh.numpy()
+    return _agree(V, images.cpu(), other.cpu(), AGREE_RADIUS * math.sqrt(tgt.mesh.area()))
 
 
 def partial_descriptor_images(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
