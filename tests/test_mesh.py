@@ -740,6 +740,10 @@ def test_a_surface_wound_inside_out_is_turned_outward():
     V, F = _holed_sphere()
     assert orient_outward(V, F)[1] is False
     assert Mesh(V, F[:, [0, 2, 1]]).turned_outward
+    # a closed thin plate (volume 4e-4 area^1.5) is read too: a closed surface's sign is exact
+    plate = trimesh.creation.box(extents=[1.0, 1.0, 0.001])
+    Vp, Fp = np.asarray(plate.vertices), np.asarray(plate.faces)
+    assert not Mesh(Vp, Fp).turned_outward and Mesh(Vp, Fp[:, [0, 2, 1]]).turned_outward
     # a flat patch encloses nothing: the file's winding is kept either way
     grid = np.asarray(trimesh.creation.box().vertices)[:4]  # the corners of the side x = -0.5
     Fg = np.array([[0, 1, 3], [0, 3, 2]])

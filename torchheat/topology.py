@@ -433,9 +433,10 @@ def fill_holes(V: np.ndarray, F: np.ndarray, rings: bool = True
 _FILL_RINGS = 8
 
 
-#: Enclosed volume, as a share of ``area^1.5``, below which a surface's inside is not read
-#: (a nearly flat patch closed by its own hole encloses almost nothing; a sphere reads 0.094,
-#: the thinnest shape of the shared data, a closed SHREC'16 piece, 0.024)
+#: Enclosed volume of a surface with holes (once closed), as a share of ``area^1.5``, below
+#: which its inside is not read (a nearly flat patch closed by its own hole encloses almost
+#: nothing; a sphere reads 0.094, the thinnest shape of the shared data, a closed SHREC'16
+#: piece, 0.024)
 _INSIDE_LEAST = 1e-3
 
 
@@ -446,8 +447,10 @@ def orient_outward(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, bool]:
     turn counter-clockwise seen from outside, the usual convention). A closed surface
     encloses its own volume; a surface with holes is first closed by :func:`fill_holes`
     (one fan per hole). If that volume is negative, every face is reversed (``[a, b, c] ->
-    [a, c, b]``, vertex order kept); if it is below ``1e-3 area^1.5`` in size (a nearly flat
-    patch: no inside to read), the faces are kept as given.
+    [a, c, b]``, vertex order kept). A closed surface's sign is read whatever its size (a thin
+    plate too), beyond rounding; a surface with holes is turned only when its closed volume
+    is at least ``1e-3 area^1.5`` in size (a nearly flat patch closed by its own hole has no
+    inside to read: its faces are kept as given).
 
     Why: the orientation of a map (which tells a shape from its mirror image) is read from the
     faces' turning sense, so a shape stored inside out (a negative scale in an exporter, a
@@ -483,18 +486,23 @@ def orient_outward(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, bool]:
     F = np.asarray(F, dtype=np.int64)
     if len(F) == 0:
         return F, False
-    if _boundary_halfedges(F, len(V)).size:
+    closed = not _boundary_halfedges(F, len(V)).size
+    if closed:
+        Vc, Fc = V, F
+    else:
         try:
             Vc, Fc = fill_holes(V, F, rings=False)
         except Exception:  # noqa: BLE001 - holes that cannot be closed: no inside to read
             return F, False
-    else:
-        Vc, Fc = V, F
     P = Vc - Vc.mean(axis=0)  # the volume does not depend on the origin; rounding does
     a, b, c = P[Fc[:, 0]], P[Fc[:, 1]], P[Fc[:, 2]]
-    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
-    e1, e2 = V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
-    area = float(np.linalg.norm(np.cross(e1, e2), axis=1).sum()) / 2.0
-    if volume >= -_INSIDE_LEAST * area**1.5:
+    cones = np.einsum("ij,ij->i", a, np.cross(b, c))
+    volume = float(cones.sum()) / 6.0
+    if closed:  # the sign is exact up to rounding: a bound of the sum's error
+        least = 1e-12 * float(np.abs(cones).sum()) / 6.0
+    else:
+        e1, e2 = V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
+        least = _INSIDE_LEAST * (float(np.linalg.norm(np.cross(e1, e2), axis=1).sum()) / 2.0)**1.5
+    if volume >= -least:
         return F, False
     return F[:, [0, 2, 1]], True
