@@ -62,6 +62,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ._arrays import to_numpy
 from .geometry import face_areas
 from .meshio import SUPPORTED_FORMATS, MeshError, MeshWarning, _plural, read_arrays
 from .topology import (
@@ -672,23 +673,16 @@ def as_mesh(x: Any) -> Mesh:
     if V is not None and F is not None:
         meta = getattr(x, "metadata", None)
         name = meta.get("file_name") if isinstance(meta, dict) else None
-        return Mesh(np.asarray(V), np.asarray(F), name=name or type(x).__name__)
+        return Mesh(to_numpy(V), to_numpy(F), name=name or type(x).__name__)
     pos, face = getattr(x, "pos", None), getattr(x, "face", None)
     if pos is not None and face is not None:  # PyTorch Geometric's Data: face is (3, m)
-        return Mesh(_numpy_of(pos), _numpy_of(face).T, name=type(x).__name__)
+        return Mesh(to_numpy(pos), to_numpy(face).T, name=type(x).__name__)
     if isinstance(x, tuple | list) and len(x) == 2:
-        return Mesh(np.asarray(x[0]), np.asarray(x[1]))
+        return Mesh(to_numpy(x[0]), to_numpy(x[1]))
     raise TypeError(
         f"expected a mesh: a torchheat.Mesh, a file path, an object with vertices and faces "
         f"arrays (e.g. trimesh.Trimesh), a PyTorch Geometric Data (pos, face) or a "
         f"(vertices, faces) pair; got {type(x).__name__}")
-
-
-def _numpy_of(a: Any) -> np.ndarray:
-    """A torch tensor (any device) or array-like as a numpy array."""
-    if isinstance(a, torch.Tensor):
-        return a.detach().cpu().numpy()
-    return np.asarray(a)
 
 
 def _shared_positions(V: np.ndarray, labels: np.ndarray) -> int:

@@ -20,6 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from .geometry import face_areas
+
 __all__ = ["edge_keys", "adjacency_from_keys", "components", "largest_component", "restrict_faces",
            "orient_faces", "orient_outward", "boundary_loops", "fill_holes"]
 
@@ -486,23 +488,18 @@ def orient_outward(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, bool]:
     F = np.asarray(F, dtype=np.int64)
     if len(F) == 0:
         return F, False
-    closed = not _boundary_halfedges(F, len(V)).size
-    if closed:
-        Vc, Fc = V, F
-    else:
-        try:
-            Vc, Fc = fill_holes(V, F, rings=False)
-        except Exception:  # noqa: BLE001 - holes that cannot be closed: no inside to read
-            return F, False
+    try:
+        Vc, Fc = fill_holes(V, F, rings=False)  # the surface itself when it has no boundary
+    except Exception:  # noqa: BLE001 - holes that cannot be closed: no inside to read
+        return F, False
     P = Vc - Vc.mean(axis=0)  # the volume does not depend on the origin; rounding does
     a, b, c = P[Fc[:, 0]], P[Fc[:, 1]], P[Fc[:, 2]]
     cones = np.einsum("ij,ij->i", a, np.cross(b, c))
     volume = float(cones.sum()) / 6.0
-    if closed:  # the sign is exact up to rounding: a bound of the sum's error
+    if len(Vc) == len(V):  # closed: the sign is exact up to rounding, a bound of the sum's
         least = 1e-12 * float(np.abs(cones).sum()) / 6.0
     else:
-        e1, e2 = V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
-        least = _INSIDE_LEAST * (float(np.linalg.norm(np.cross(e1, e2), axis=1).sum()) / 2.0)**1.5
+        least = _INSIDE_LEAST * float(face_areas(V, F).sum()) ** 1.5
     if volume >= -least:
         return F, False
     return F[:, [0, 2, 1]], True

@@ -415,16 +415,7 @@ def _check_matchable(mesh: Mesh, k: int, remedy: str | None = None) -> None:
 def _as_prepared(x, **kw) -> PreparedShape:
     if isinstance(x, PreparedShape):
         return x
-    if isinstance(x, Mesh) or is_cached_shape(x):
-        return prepare(x, **kw)
-    try:
-        mesh = as_mesh(x)
-    except TypeError:
-        raise TypeError(f"expected a Mesh, PreparedShape or dataset Shape, a file path, an "
-                        f"object with vertices and faces arrays (e.g. trimesh.Trimesh), a "
-                        f"PyTorch Geometric Data or a (vertices, faces) pair; got "
-                        f"{type(x).__name__}") from None
-    return prepare(mesh, **kw)
+    return prepare(x, **kw)  # a Mesh, a dataset shape, or what as_mesh takes
 
 
 # ------------------------------------------------------------------------------------------
