@@ -246,6 +246,18 @@ def test_refine_pipeline_recovers_permutation(asym_pair):
     assert all(perm[a] == b for a, b in corr.landmarks)
 
 
+def test_refine_pipeline_far_from_origin(asym_pair):
+    # scans in survey coordinates (UTM: 1e5-1e6 units from the origin, features of size 1):
+    # every geometric quantity is a difference of coordinates taken in float64, so a target
+    # moved 1e6 away still gets the exact permutation, the same map as near the origin
+    S, T, perm = asym_pair
+    far = prepare(Mesh(T.mesh.vertices.numpy() + np.array([3.7e5, -1.2e6, 8.0e5]),
+                       T.mesh.faces.numpy()))
+    corr = match(S, far)
+    assert exact(corr.map, perm) == 1.0
+    assert corr.orientation > 0.9
+
+
 @pytest.mark.parametrize("opts", [{"times": "paper"}, {"refine_log_floor": 1e-3}],
                          ids=["certified-times", "log-descriptor"])
 def test_refine_pipeline_explicit_descriptors(opts):
