@@ -225,6 +225,31 @@ def test_degenerate_faces(tmp_path, ext):
     assert_mesh_error(path, "2 degenerate faces", "1 with a repeated vertex", "first faces 1, 2")
 
 
+def test_degenerate_faces_from_duplicated_vertices(tmp_path):
+    # a UV sphere whose pole is stored once per meridian (as many exporters write it): the
+    # pole rows' faces have two distinct corners at one position; only merging repairs that
+    n, m = 12, 6
+    th, ph = np.meshgrid(np.pi * np.arange(m + 1) / m, 2 * np.pi * np.arange(n) / n,
+                         indexing="ij")
+    V = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    V = V.reshape(-1, 3)
+    idx = np.arange((m + 1) * n).reshape(m + 1, n)
+    a, b = idx[:-1], idx[1:]
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    F = np.concatenate([np.stack([a, b, b1], -1).reshape(-1, 3),
+                        np.stack([a, b1, a1], -1).reshape(-1, 3)])
+    path = write_mesh(tmp_path, "uv_sphere.off", V, F)
+    msg = assert_mesh_error(path, f"{2 * n} degenerate faces",
+                            f"{2 * n} of them have two corners at one position",
+                            "merge coincident vertices")
+    assert "Remove Zero Area Faces" not in msg  # removing them would open two holes
+    # a genuinely flat face (distinct positions) keeps the usual advice
+    V2 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]])
+    with pytest.raises(MeshError) as info:
+        Mesh(V2, [[0, 1, 2], [0, 1, 3]], name="flat")
+    assert "merge" not in str(info.value) and "Remove Zero Area Faces" in str(info.value)
+
+
 def test_degenerate_threshold_is_relative():
     # a tiny but valid triangle on a mesh of any scale is accepted ...
     scale = 1e-4

@@ -54,6 +54,7 @@ torch.Size([30, 2])
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from typing import Any
@@ -341,11 +342,26 @@ class Mesh:
                 ).sum()
             )
             extra = f", {repeated} with a repeated vertex" if repeated else ""
+            # two distinct corners at one position (within 1e-6 of the diagonal): vertices
+            # stored twice (a UV sphere's poles, a seam), which only merging repairs; removing
+            # the faces would open a hole
+            Fb, close = F[bad], math.sqrt(DEGENERATE_REL_AREA) * _bbox_diagonal_np(V)
+            twins = int(np.logical_or.reduce([
+                (Fb[:, a] != Fb[:, b])
+                & (np.linalg.norm(V[Fb[:, a]] - V[Fb[:, b]], axis=1) <= close)
+                for a, b in ((0, 1), (1, 2), (0, 2))]).sum())
+            remedy = ("remove or collapse them (e.g. MeshLab 'Remove Zero Area Faces') while "
+                      "keeping the vertex order")
+            if twins:
+                remedy = (f"{twins} of them have two corners at one position under two vertex "
+                          "indices (vertices stored twice, as a UV sphere's poles or a seam "
+                          "often are): merge coincident vertices (MeshLab 'Merge Close "
+                          "Vertices', trimesh's merge_vertices; this renumbers the vertices)"
+                          + ("" if twins == bad.size else "; " + remedy + " for the others"))
             raise MeshError(
                 f"{self._label()}: {_plural(bad.size, 'degenerate face')} of zero area{extra} "
                 f"(first faces {_listed(bad)}; area <= {DEGENERATE_REL_AREA:g} * bbox "
-                "diagonal^2); remove or collapse them (e.g. MeshLab 'Remove Zero Area Faces') "
-                "while keeping the vertex order"
+                f"diagonal^2); {remedy}"
             )
 
     def _check_unreferenced(self, F: np.ndarray, n: int) -> None:
