@@ -355,8 +355,10 @@ class Mesh:
             if twins:
                 remedy = (f"{twins} of them have two corners at one position under two vertex "
                           "indices (vertices stored twice, as a UV sphere's poles or a seam "
-                          "often are): merge coincident vertices (MeshLab 'Merge Close "
-                          "Vertices', trimesh's merge_vertices; this renumbers the vertices)"
+                          "often are): merge coincident vertices, then remove the faces that "
+                          "collapse (MeshLab 'Merge Close Vertices', then 'Remove Zero Area "
+                          "Faces'; trimesh.load(path, process=True, validate=True)); this "
+                          "renumbers the vertices"
                           + ("" if twins == bad.size else "; " + remedy + " for the others"))
             raise MeshError(
                 f"{self._label()}: {_plural(bad.size, 'degenerate face')} of zero area{extra} "
