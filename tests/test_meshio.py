@@ -506,6 +506,36 @@ def test_mixed_polygons_same_in_obj_off_ply(tmp_path):
     assert s.sum() == pytest.approx(sum(shoelace(V[p, :2]) for p in polys))
 
 
+@pytest.mark.parametrize("fmt", ["obj", "off", "coff", "ply"])
+def test_byte_order_mark_is_skipped(tmp_path, fmt):
+    # Windows editors and some exporters start a text file with a UTF-8 BOM; it was read as
+    # part of the first token: an OBJ lost its first vertex (every index shifted: "out of
+    # range", or a wrong mesh with relative indices), OFF and PLY were refused
+    V, F = generic_sphere(1)
+    polys = F.tolist()
+    if fmt == "obj":
+        text = "".join(f"v {a!r} {b!r} {c!r}\n" for a, b, c in V.tolist())
+        text += "".join(f"f {a - len(V)} {b - len(V)} {c - len(V)}\n" for a, b, c in F)
+    elif fmt == "ply":
+        text = ply_text(V, polys, "vertex_indices")
+    else:
+        text = off_text(V, polys)
+        if fmt == "coff":
+            rows = text.splitlines()
+            rows[0] = "COFF"
+            rows[2:2 + len(V)] = [r + " 200 100 50 255" for r in rows[2:2 + len(V)]]
+            text = "\n".join(rows) + "\n"
+    ext = "off" if fmt == "coff" else fmt
+    plain = read_arrays(write(tmp_path / f"plain.{ext}", text))
+    path = tmp_path / f"bom.{ext}"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    V2, F2 = read_arrays(path)
+    np.testing.assert_array_equal(V2, plain[0])
+    np.testing.assert_array_equal(F2, plain[1])
+    np.testing.assert_allclose(V2, V, atol=1e-6)
+    assert len(F2) == len(F)
+
+
 def test_repeated_last_corner_is_dropped(tmp_path):
     # '4 a b c c' (triangles written as degenerate quads by some exporters) is a triangle
     text = "OFF\n4 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 2\n4 0 2 3 0\n"

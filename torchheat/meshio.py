@@ -446,9 +446,20 @@ def _line_of(text: str, pattern: re.Pattern[str], k: int) -> int:
     return 0
 
 
+#: UTF-8 byte-order mark, which Windows editors and some exporters put before a text file
+_BOM = b"\xef\xbb\xbf"
+
+
+def _file_bytes(path: Path) -> bytes:
+    """The file's bytes, without a leading UTF-8 byte-order mark (read as part of the first
+    token, it hid an OBJ file's first vertex and shifted every index)."""
+    raw = path.read_bytes()
+    return raw[len(_BOM):] if raw.startswith(_BOM) else raw
+
+
 def _parse_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``v`` lines and the first index of every ``f`` corner of an OBJ file, in order."""
-    text = path.read_bytes().decode("utf-8", errors="replace")
+    text = _file_bytes(path).decode("utf-8", errors="replace")
     vlines = _OBJ_V.findall(text)
     flines = _OBJ_F.findall(text)
     if not vlines and not flines:
@@ -515,8 +526,7 @@ def _parse_off(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     short or malformed file), which then goes to :func:`_read_off` and its error messages.
     About 10x faster than ``trimesh.load``.
     """
-    with open(path, "rb") as fh:
-        raw = fh.read()
+    raw = _file_bytes(path)
     try:
         text = raw.decode("ascii")
     except UnicodeDecodeError:
@@ -554,7 +564,7 @@ def _parse_off(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Any ASCII OFF file: polygons, colours, extra vertex columns; precise error messages."""
-    text = path.read_bytes().decode("utf-8", errors="replace")
+    text = _file_bytes(path).decode("utf-8", errors="replace")
 
     def fail(what: str) -> MeshError:
         return MeshError(f"{path}: could not read the file as OFF: {what}")
@@ -926,7 +936,7 @@ def _ply_binary(
 
 def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """ASCII or binary PLY: ``x y z`` of ``vertex``, the index list of ``face``, in order."""
-    raw = path.read_bytes()
+    raw = _file_bytes(path)
     fmt, elements, body = _ply_header(path, raw)
     names = [e.name for e in elements]
     vert = elements[names.index("vertex")] if "vertex" in names else None
