@@ -536,6 +536,20 @@ def test_byte_order_mark_is_skipped(tmp_path, fmt):
     assert len(F2) == len(F)
 
 
+def test_obj_line_continuation(tmp_path):
+    # the OBJ spec lets a backslash at the end of a line continue it (long polygons)
+    V, F = generic_sphere(1)
+    plain = "".join(f"v {a!r} {b!r} {c!r}\n" for a, b, c in V.tolist())
+    split = plain.replace(" ", " \\\n ", 1)  # the first 'v' line split after 'v'
+    plain += "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F.tolist())
+    split += "".join(f"f {a + 1} \\\r\n{b + 1} \\ \n {c + 1}\n" for a, b, c in F.tolist())
+    Vp, Fp = read_arrays(write(tmp_path / "plain.obj", plain))
+    Vs, Fs = read_arrays(write(tmp_path / "split.obj", split))
+    np.testing.assert_array_equal(Vs, Vp)
+    np.testing.assert_array_equal(Fs, Fp)
+    np.testing.assert_array_equal(Fp, F)
+
+
 def test_repeated_last_corner_is_dropped(tmp_path):
     # '4 a b c c' (triangles written as degenerate quads by some exporters) is a triangle
     text = "OFF\n4 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 2\n4 0 2 3 0\n"

@@ -460,6 +460,8 @@ def _file_bytes(path: Path) -> bytes:
 def _parse_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``v`` lines and the first index of every ``f`` corner of an OBJ file, in order."""
     text = _file_bytes(path).decode("utf-8", errors="replace")
+    if "\\" in text:  # a backslash at the end of a line continues it (the OBJ spec)
+        text = re.sub(r"\\[ \t]*\r?\n", " ", text)
     vlines = _OBJ_V.findall(text)
     flines = _OBJ_F.findall(text)
     if not vlines and not flines:
