@@ -347,8 +347,14 @@ def test_partial_refuses_a_piece_without_interior_and_swapped_shapes(spot_piece)
     piece, whole, _ = spot_piece
     V, F = whole.numpy()
     strip = Mesh(V, F, name="whole-as-piece")
-    with pytest.raises(MeshError, match="too little interior"):
+    with pytest.raises(MeshError, match="too little interior") as info:
         match(piece, strip, partial=True, partial_margin=5.0)
+    assert "units" not in str(info.value)  # a piece of a sensible size
+    # the piece in millimetres against a whole in metres: too small to have an interior,
+    # and the error names the likely cause
+    Vp, Fp = piece.numpy()
+    with pytest.raises(MeshError, match="too little interior.*other units than the whole"):
+        match(Mesh(Vp * 1e-3, Fp, name="piece-mm"), whole, partial=True)
     with pytest.raises(MeshError, match="swap the shapes"):
         match(Mesh(V * 1.5, F, name="bigger"), piece, partial=True)
     for scale in ("auto", "piece", "filled"):  # one shape given twice: no piece and whole

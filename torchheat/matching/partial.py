@@ -83,6 +83,9 @@ PARTIAL_MARGIN = 0.02
 _MIN_INTERIOR = 50
 #: Interior farthest-point samples prepared for a piece (every sample request is a prefix).
 _INTERIOR_SAMPLES = 2048
+#: Area ratio below which a piece without enough interior is said to be perhaps in other units
+#: than its whole (a millimetre piece of a metre whole: 1e-6).
+_UNITS_HINT_RATIO = 1e-3
 #: Area ratio above which the "partial" source is taken to be as large as the target.
 _RATIO_MAX = 1.1
 
@@ -192,11 +195,16 @@ def _setup(src: PreparedShape, tgt: PreparedShape, margin: float) -> _PartialSet
     n_in = int(interior.sum())
     if n_in < _MIN_INTERIOR:
         label = src.mesh.name or "source"
+        units = ""
+        if r < _UNITS_HINT_RATIO:  # a piece in other units than its whole looks tiny
+            units = (f"; the piece covers only {r:.2g} of the whole's area: if it is stored in "
+                     "other units than the whole (e.g. metres against millimetres), rescale "
+                     "it, both must be in the same units")
         raise MeshError(
             f"{label}: only {n_in} vertices lie at least {margin:g} sqrt(area) from the "
             f"boundary (largest distance {float(np.max(dist)):.3f}), too little interior to "
             f"match a partial shape (at least {_MIN_INTERIOR}); lower the margin "
-            "(partial_margin=..., --partial-margin) or use a larger piece")
+            f"(partial_margin=..., --partial-margin) or use a larger piece{units}")
     return _PartialSetup(r, interior, dist, margin)
 
 
