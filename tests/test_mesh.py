@@ -210,8 +210,14 @@ def test_face_index_out_of_range(tmp_path, name, text, phrase):
 
 
 def test_out_of_range_in_memory():
-    with pytest.raises(MeshError, match=r"^tri: 1 face with vertex indices out of range"):
+    with pytest.raises(MeshError, match=r"^tri: 1 face with vertex indices out of range") as e:
         Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 3]], name="tri")
+    assert "one-based" not in str(e.value)
+    # MATLAB's one-based faces (a .mat file's TRIV, say): named as such
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    with pytest.raises(MeshError, match="from 1 to 4: they are one-based.*subtract 1"):
+        Mesh(V, (F + 1).astype(float), name="mat")
     with pytest.raises(MeshError, match="out of range"):
         Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, -1, 2]], name="tri")
 

@@ -324,11 +324,14 @@ class Mesh:
         bad = np.flatnonzero(bad_mask.any(axis=1))
         if bad.size:
             values = F[bad_mask]
+            advice = "the file is corrupt or indices are not zero-based, fix the face list"
+            if F.size and int(F.min()) == 1 and int(F.max()) == n:
+                advice = (f"the indices run from 1 to {n}: they are one-based (as MATLAB "
+                          "and .mat files store them), subtract 1 from every index")
             raise MeshError(
                 f"{self._label()}: {_plural(bad.size, 'face')} with vertex indices out of range "
                 f"(valid: 0..{n - 1}; found e.g. {int(values[0])} in face {int(bad[0])}; "
-                f"faces {_listed(bad)}); the file is corrupt or indices are not zero-based, "
-                "fix the face list"
+                f"faces {_listed(bad)}); {advice}"
             )
 
     def _check_degenerate(self, V: np.ndarray, F: np.ndarray) -> None:
