@@ -548,6 +548,12 @@ def test_obj_line_continuation(tmp_path):
     np.testing.assert_array_equal(Vs, Vp)
     np.testing.assert_array_equal(Fs, Fp)
     np.testing.assert_array_equal(Fp, F)
+    # a comment is not continued (it may end in a Windows path), and errors keep line numbers
+    commented = "# exported from C:\\models\\\n" + plain
+    np.testing.assert_array_equal(read_arrays(write(tmp_path / "c.obj", commented))[1], F)
+    bad = "v 0 0 \\\n 0\nv 1 0 0\nv 0 1 0\nv 1 x 0\nf 1 2 3\n"
+    with pytest.raises(MeshError, match="line 5"):
+        read_arrays(write(tmp_path / "bad.obj", bad))
 
 
 def test_repeated_last_corner_is_dropped(tmp_path):

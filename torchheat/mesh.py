@@ -356,7 +356,8 @@ class Mesh:
             remedy = ("remove or collapse them (e.g. MeshLab 'Remove Zero Area Faces') while "
                       "keeping the vertex order")
             if twins:
-                remedy = (f"{twins} of them have two corners at one position under two vertex "
+                remedy = (f"{twins} of them {'has' if twins == 1 else 'have'} two corners at "
+                          "one position under two vertex "
                           "indices (vertices stored twice, as a UV sphere's poles or a seam "
                           "often are): merge coincident vertices, then remove the faces that "
                           "collapse (MeshLab 'Merge Close Vertices', then 'Remove Zero Area "

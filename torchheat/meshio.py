@@ -457,11 +457,32 @@ def _file_bytes(path: Path) -> bytes:
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
+def _join_continued(text: str) -> str:
+    """OBJ lines continued by a backslash at their end (the OBJ spec) joined into one, each
+    followed by as many empty lines as it absorbed (error messages keep their line numbers).
+    A comment line is never continued: it may end in a Windows path's backslash."""
+    out: list[str] = []
+    head, absorbed = None, 0
+    for line in text.splitlines():
+        if head is not None:
+            line, absorbed = head + " " + line, absorbed + 1
+        stripped = line.rstrip()
+        if stripped.endswith("\\") and not stripped.lstrip().startswith("#"):
+            head = stripped[:-1]
+            continue
+        out.append(line)
+        out.extend([""] * absorbed)
+        head, absorbed = None, 0
+    if head is not None:
+        out.append(head)
+    return "\n".join(out) + "\n"
+
+
 def _parse_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``v`` lines and the first index of every ``f`` corner of an OBJ file, in order."""
     text = _file_bytes(path).decode("utf-8", errors="replace")
-    if "\\" in text:  # a backslash at the end of a line continues it (the OBJ spec)
-        text = re.sub(r"\\[ \t]*\r?\n", " ", text)
+    if "\\" in text:
+        text = _join_continued(text)
     vlines = _OBJ_V.findall(text)
     flines = _OBJ_F.findall(text)
     if not vlines and not flines:
