@@ -336,6 +336,25 @@ def test_folder_and_pairs_from_list(spot_files, tmp_path):
         folder(tmp_path / "empty")
 
 
+def test_folder_matches_extensions_in_any_case(spot_files, tmp_path):
+    # exports from Windows and macOS tools: SPOT.OBJ, Spot.Obj; a case-sensitive glob left
+    # them out of the collection without a word
+    a, _ = spot_files
+    d = tmp_path / "mixed"
+    d.mkdir()
+    shutil.copy(a, d / "spot1.obj")
+    shutil.copy(a, d / "SPOT2.OBJ")
+    shutil.copy(a, d / "spot3.Obj")
+    (d / "sub").mkdir()
+    shutil.copy(a, d / "sub" / "spot4.obj")
+    (d / "readme.TXT").write_text("not a mesh")
+    shapes = folder(d)
+    assert sorted(shapes.names) == ["SPOT2", "spot1", "spot3"]
+    assert shapes[shapes.names.index("SPOT2")].mesh.n_vertices == 2930
+    assert folder(d, pattern="*.OBJ").names == shapes.names  # patterns ignore case too
+    assert folder(d, pattern="sub/*.obj").names == ["spot4"]  # a subfolder pattern is globbed
+
+
 def test_default_cache_dir_from_environment(spot_files, tmp_path, monkeypatch):
     a, _ = spot_files
     monkeypatch.setenv("TORCHHEAT_CACHE", str(tmp_path / "envcache"))

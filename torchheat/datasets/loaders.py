@@ -4,6 +4,7 @@ resolution, KIDS, SHREC'16 partial) and of any folder of meshes; the data root.
 
 from __future__ import annotations
 
+import fnmatch
 import os
 import re
 from collections.abc import Sequence
@@ -57,7 +58,15 @@ def _dataset_dir(root: PathLike | None, name: str, marker: str) -> Path:
 
 
 def _sorted_files(d: Path, pattern: str) -> list[Path]:
-    files = {p for pat in pattern.split("|") for p in d.glob(pat.strip()) if p.is_file()}
+    """Files of ``d`` whose names match one of the ``|``-separated glob patterns, ignoring
+    case (``CAT1.OFF``, ``scan.Obj``: exports from Windows and macOS tools; a case-sensitive
+    glob dropped them from the collection without a word), in natural name order. A pattern
+    with a ``/`` (a subfolder) is globbed as given."""
+    pats = [p.strip() for p in pattern.split("|") if p.strip()]
+    names = [q.lower() for q in pats if "/" not in q]
+    files = {p for p in d.iterdir()
+             if p.is_file() and any(fnmatch.fnmatchcase(p.name.lower(), q) for q in names)}
+    files |= {p for q in pats if "/" in q for p in d.glob(q) if p.is_file()}
     return sorted(files, key=lambda p: _natural_key(p.name))
 
 
