@@ -260,6 +260,12 @@ def test_bad_config_gives_one_line_error(tmp_path, capsys):
     bad.write_text("name: x\ndataset: scape\nlimt: 3\n")
     assert batch.main([str(bad)]) == 2
     assert "unknown keys" in capsys.readouterr().err
+    # a folder of meshes has no ground truth but the vertex order: it must be said
+    bad.write_text(f"name: x\ndataset: folder\ndataset_args: {{path: {tmp_path}, "
+                   "pairs: [[a, b]]}\n")
+    assert batch.main([str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "needs dataset_args.gt: identity" in err and "torchheat match" in err
 
 
 def test_roles_share_one_eigensolve_but_not_their_times():

@@ -48,7 +48,7 @@ def _config(tmp: Path, meshes: Path, out: Path, pairs=None, **over) -> Path:
     names = [f"blob{i}" for i in range(N_SHAPES)]
     cfg = {
         "name": out.name, "output": str(out), "dataset": "folder",
-        "dataset_args": {"path": str(meshes), "classes": ["blob"] * len(names),
+        "dataset_args": {"path": str(meshes), "classes": ["blob"] * len(names), "gt": "identity",
                          "pairs": pairs or [[a, b] for a in names for b in names if a != b]},
         "task": "match", "match": {"method": "paper"}, "prepare": {"k": 30},
         "pictures": 0,
