@@ -266,6 +266,10 @@ def test_bad_config_gives_one_line_error(tmp_path, capsys):
     assert batch.main([str(bad)]) == 2
     err = capsys.readouterr().err
     assert "needs dataset_args.gt: identity" in err and "torchheat match" in err
+    bad.write_text(f"name: x\ndataset: folder\ndataset_args: {{path: {tmp_path}, "
+                   "pairs: [[a, b]], gt: identiy}\n")  # a typo is refused the same way
+    assert batch.main([str(bad)]) == 2
+    assert "got 'identiy'" in capsys.readouterr().err
 
 
 def test_roles_share_one_eigensolve_but_not_their_times():

@@ -336,34 +336,32 @@ class Mesh:
 
     def _check_degenerate(self, V: np.ndarray, F: np.ndarray) -> None:
         areas = face_areas(V, F)
-        tol = DEGENERATE_REL_AREA * _bbox_diagonal_np(V) ** 2
-        bad = np.flatnonzero(areas <= tol)
+        diag = _bbox_diagonal_np(V)
+        bad = np.flatnonzero(areas <= DEGENERATE_REL_AREA * diag**2)
         if bad.size:
+            Fb = F[bad]
             repeated = int(
-                (
-                    (F[bad, 0] == F[bad, 1]) | (F[bad, 1] == F[bad, 2]) | (F[bad, 0] == F[bad, 2])
-                ).sum()
+                ((Fb[:, 0] == Fb[:, 1]) | (Fb[:, 1] == Fb[:, 2]) | (Fb[:, 0] == Fb[:, 2])).sum()
             )
             extra = f", {repeated} with a repeated vertex" if repeated else ""
             # two distinct corners at one position (within 1e-6 of the diagonal): vertices
             # stored twice (a UV sphere's poles, a seam), which only merging repairs; removing
             # the faces would open a hole
-            Fb, close = F[bad], math.sqrt(DEGENERATE_REL_AREA) * _bbox_diagonal_np(V)
+            close = math.sqrt(DEGENERATE_REL_AREA) * diag
             twins = int(np.logical_or.reduce([
                 (Fb[:, a] != Fb[:, b])
                 & (np.linalg.norm(V[Fb[:, a]] - V[Fb[:, b]], axis=1) <= close)
                 for a, b in ((0, 1), (1, 2), (0, 2))]).sum())
-            remedy = ("remove or collapse them (e.g. MeshLab 'Remove Zero Area Faces') while "
+            remove = ("remove or collapse them (e.g. MeshLab 'Remove Zero Area Faces') while "
                       "keeping the vertex order")
-            if twins:
-                remedy = (f"{twins} of them {'has' if twins == 1 else 'have'} two corners at "
-                          "one position under two vertex "
-                          "indices (vertices stored twice, as a UV sphere's poles or a seam "
-                          "often are): merge coincident vertices, then remove the faces that "
-                          "collapse (MeshLab 'Merge Close Vertices', then 'Remove Zero Area "
-                          "Faces'; trimesh.load(path, process=True, validate=True)); this "
-                          "renumbers the vertices"
-                          + ("" if twins == bad.size else "; " + remedy + " for the others"))
+            merge = (f"{twins} of them {'has' if twins == 1 else 'have'} two corners at one "
+                     "position under two vertex indices (vertices stored twice, as a UV "
+                     "sphere's poles or a seam often are): merge coincident vertices, then "
+                     "remove the faces that collapse (MeshLab 'Merge Close Vertices', then "
+                     "'Remove Zero Area Faces'; trimesh.load(path, process=True, "
+                     "validate=True)); this renumbers the vertices")
+            remedy = (remove if not twins else merge if twins == bad.size
+                      else f"{merge}; {remove} for the others")
             raise MeshError(
                 f"{self._label()}: {_plural(bad.size, 'degenerate face')} of zero area{extra} "
                 f"(first faces {_listed(bad)}; area <= {DEGENERATE_REL_AREA:g} * bbox "

@@ -457,6 +457,10 @@ def _file_bytes(path: Path) -> bytes:
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
+#: A line that ends in a backslash (spaces after it allowed)
+_OBJ_CONTINUED = re.compile(r"\\[ \t]*\r?$", re.MULTILINE)
+
+
 def _join_continued(text: str) -> str:
     """OBJ lines continued by a backslash at their end (the OBJ spec) joined into one, each
     followed by as many empty lines as it absorbed (error messages keep their line numbers).
@@ -481,7 +485,7 @@ def _join_continued(text: str) -> str:
 def _parse_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``v`` lines and the first index of every ``f`` corner of an OBJ file, in order."""
     text = _file_bytes(path).decode("utf-8", errors="replace")
-    if "\\" in text:
+    if _OBJ_CONTINUED.search(text):  # not for a mere backslash (a path in a comment)
         text = _join_continued(text)
     vlines = _OBJ_V.findall(text)
     flines = _OBJ_F.findall(text)

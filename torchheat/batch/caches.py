@@ -182,7 +182,7 @@ def _load_dataset(dataset: str, args: Mapping[str, Any], cache: str | None = Non
             kw["cache_dir"] = cache
         if dataset == "folder":
             pairs = kw.pop("pairs", None)
-            gt = kw.pop("gt", "identity")
+            gt = kw.pop("gt")  # "identity", required by load_config
             if not pairs:
                 raise ConfigError("dataset 'folder' needs dataset_args.pairs: [[a, b], ...]")
             shapes = datasets.folder(kw.pop("path"), **kw)

@@ -142,11 +142,12 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
     cfg["output"] = str(cfg["output"])
     if cfg["dataset"] == "folder" and "path" not in cfg["dataset_args"]:
         raise ConfigError(f"{where}: dataset 'folder' needs dataset_args.path and .pairs")
-    if cfg["dataset"] == "folder" and "gt" not in cfg["dataset_args"]:
+    if cfg["dataset"] == "folder" and cfg["dataset_args"].get("gt") != "identity":
         # the errors of a batch are only as true as its ground truth, and a folder has none
         # but the vertex order: assuming it silently scored unrelated meshes as if matched
         raise ConfigError(
-            f"{where}: dataset 'folder' needs dataset_args.gt: identity (the meshes share "
+            f"{where}: dataset 'folder' needs dataset_args.gt: identity (got "
+            f"{cfg['dataset_args'].get('gt')!r}; the meshes share "
             "their vertex order, vertex i of one is vertex i of every other, as poses of one "
             "template); a folder carries no other ground truth. To compute maps without "
             "ground truth, run 'torchheat match' on each pair")
