@@ -465,6 +465,13 @@ def test_bad_input(asym_pair):
         match(S, T, landmark=-1)
     with pytest.raises(IndexError):
         match(S, T, landmark=(0, T.n + 3))
+    # a non-integral landmark was truncated to a vertex without a word
+    for bad in (3.5, (2, 7.25), "3", True):
+        with pytest.raises(TypeError, match="is not a vertex index"):
+            match(S, T, landmark=bad, method="paper")
+    ref = match(S, T, landmark=(3, 5), method="paper")
+    for same in ((np.int64(3), torch.tensor(5)), (3.0, 5)):  # integers of any kind
+        assert match(S, T, landmark=same, method="paper").landmarks[0] == ref.landmarks[0]
     with pytest.raises(ValueError):
         match(S, T, method="exact")
     with pytest.raises(ValueError):

@@ -346,8 +346,28 @@ def test_non_manifold_edge_warns(tmp_path):
     with pytest.warns(MeshWarning, match=r"1 non-manifold edge .*first \(0, 1\)") as rec:
         mesh = load_mesh(path)
     assert str(path) in str(rec[0].message)
+    assert "repair the mesh if you can" in str(rec[0].message)  # no repeated face to name
     assert mesh.n_faces == 3
     assert mesh.boundary_edges().shape[0] == 6
+
+
+@pytest.mark.parametrize("flap", [False, True])
+def test_repeated_faces_named(tmp_path, flap):
+    # an exported copy of a face, or a two-sided flap (SHREC'16's null cat has 12 flaps):
+    # the non-manifold-edge warning says which faces repeat which, and how to remove them
+    m = trimesh.creation.icosphere(1)
+    F = np.asarray(m.faces)
+    extra = F[[7, 3]][:, ::-1] if flap else np.roll(F[[7, 3]], 1, axis=1)
+    path = write_mesh(tmp_path, "rep.off", np.asarray(m.vertices), np.vstack([F, extra]))
+    with pytest.warns(MeshWarning) as rec:
+        mesh = load_mesh(path)
+    msg = str(rec[0].message)
+    n = F.shape[0]
+    how = "wound the other way: a two-sided flap" if flap else "a copy"
+    assert f"2 faces repeat the three vertices of an earlier face (first: face {n} repeats " \
+           f"face 7, {how})" in msg
+    assert "6 non-manifold edges" in msg and "unique_faces" in msg
+    assert mesh.n_faces == n + 2  # warned, not changed: face indices stay the file's
 
 
 def test_non_manifold_vertex_boundary_orientation_accepted():

@@ -90,6 +90,28 @@ def _listed(idx: np.ndarray) -> str:
     return head + (", ..." if idx.size > _MAX_LISTED else "")
 
 
+def _repeated_faces(faces: torch.Tensor) -> str:
+    """The advice of the non-manifold-edge warning: names faces that repeat another face's
+    three vertices (either winding: a copy, or a two-sided flap), the common cause, and how to
+    remove them; else a generic advice."""
+    key = np.sort(faces.numpy(), axis=1)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    rep = np.flatnonzero(first[inverse.ravel()] != np.arange(key.shape[0]))
+    if not rep.size:
+        return "repair the mesh if you can"
+    a, b = int(first[inverse.ravel()[rep[0]]]), int(rep[0])
+    F = faces.numpy()
+    same = (F[a] == np.roll(F[b], 1)).all() or (F[a] == np.roll(F[b], 2)).all() or (
+        F[a] == F[b]).all()
+    how = "a copy" if same else "wound the other way: a two-sided flap"
+    verb = "repeats" if rep.size == 1 else "repeat"
+    return (f"and {_plural(rep.size, 'face')} {verb} the three vertices of an earlier face "
+            f"(first: face {b} repeats face {a}, {how}), so the Laplacian counts that surface "
+            "twice: remove the repeated faces (trimesh: mesh.update_faces(mesh.unique_faces());"
+            " MeshLab 'Remove Duplicate Faces'), a flap with both its faces and its own vertex; "
+            "this renumbers faces (and vertices): renumber any correspondences")
+
+
 def _to_numpy(x: Any, what: str, label: str) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
@@ -411,7 +433,7 @@ class Mesh:
             warnings.warn(
                 f"{self._label()}: {_plural(nonmanifold.size, 'non-manifold edge')} (shared by "
                 f"more than two faces; first ({int(i)}, {int(j)})); the mesh is used as is but "
-                "results near these edges are less reliable, repair the mesh if you can",
+                f"results near these edges are less reliable, {_repeated_faces(self.faces)}",
                 MeshWarning,
                 stacklevel=3,
             )

@@ -6,6 +6,7 @@ landmarks).
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 
 import numpy as np
@@ -283,6 +284,24 @@ def _expand(src, tgt, p, q, p2, use_hks, radius, limit=2) -> list[list[tuple[int
     return [[(p, q), (p2, int(q2))] for q2 in q2s]
 
 
+def _vertex_index(value: object, n: int, what: str) -> int:
+    """``value`` as a vertex index in ``[0, n)``: an integer (Python, numpy or a one-element
+    tensor; a float only when integral), else a ``TypeError``; out of range an ``IndexError``
+    (a float 3.7 was truncated to vertex 3 without a word)."""
+    v = value.item() if isinstance(value, torch.Tensor) and value.numel() == 1 else value
+    if isinstance(v, float | np.floating) and float(v).is_integer():
+        v = int(v)
+    try:
+        if isinstance(v, bool | np.bool_):
+            raise TypeError
+        i = operator.index(v)
+    except TypeError:
+        raise TypeError(f"{what} {value!r} is not a vertex index (an integer)") from None
+    if not 0 <= i < n:
+        raise IndexError(f"{what} {i} out of range for {n} vertices")
+    return i
+
+
 def _landmark_search(src: PreparedShape, tgt: PreparedShape, landmark, use_hks: bool,
                      engine: str, score_rows: torch.Tensor | None, max_features: int,
                      n_candidates: int, trees: _TreeCache | None = None
@@ -297,15 +316,11 @@ def _landmark_search(src: PreparedShape, tgt: PreparedShape, landmark, use_hks: 
     if landmark is None:
         p = int(src.features[0])
     elif isinstance(landmark, tuple | list):
-        p = int(landmark[0])
+        p = _vertex_index(landmark[0], src.n, "source landmark")
     else:
-        p = int(landmark)
-    if not 0 <= p < src.n:
-        raise IndexError(f"source landmark {p} out of range for {src.n} vertices")
+        p = _vertex_index(landmark, src.n, "source landmark")
     if isinstance(landmark, tuple | list):
-        q0 = int(landmark[1])
-        if not 0 <= q0 < tgt.n:
-            raise IndexError(f"target landmark {q0} out of range for {tgt.n} vertices")
+        q0 = _vertex_index(landmark[1], tgt.n, "target landmark")
         cands = torch.tensor([q0])
         scores = landmark_scores(src, tgt, p, cands, use_hks=use_hks, engine=engine)
     else:
