@@ -398,6 +398,16 @@ def test_fine_map_keeps_a_permutation_and_runs_from_the_command_line(spot_pair, 
     assert not (tmp_path / "m2.txt").exists() and "--fine" in capsys.readouterr().err
     with pytest.raises(ValueError, match="fine_k"):
         match(S, T, fine_k=150, method="paper")
+    # a basis of more than a quarter of the vertices is refused (a typo's 10**6 ran a dense
+    # eigensolve and a ZoomOut of hours), in Python and before the command line's workers
+    top = min(S.n, T.n) // 4
+    with pytest.raises(ValueError, match=f"more than a quarter .* at most {top}"):
+        match(S, T, fine_k=top + 1)
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m3.txt"), "--fine",
+                 str(10**6)]) == 1
+    err = capsys.readouterr().err
+    assert "--fine 1000000: 1000000 eigenmodes" in err and f"at most {top}" in err
+    assert not (tmp_path / "m3.txt").exists()
 
 
 def test_offered_basis_is_kept_only_if_it_extends_the_heat_kernels():

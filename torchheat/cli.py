@@ -219,7 +219,7 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     """
     import numpy as np
 
-    from .eigen import DEFAULT_EIGENPAIRS, EigenWorkers
+    from .eigen import DEFAULT_EIGENPAIRS, EigenWorkers, fine_k_problem
     from .meshio import read_arrays
     from .topology import restrict_faces
 
@@ -234,6 +234,8 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     jobs = solved if closed is None else [*solved, closed]
     ks = [DEFAULT_EIGENPAIRS] * len(jobs)
     fine = getattr(args, "fine", None)
+    if fine is not None and (why := fine_k_problem(int(fine), min(len(V) for V, _ in solved))):
+        raise CLIError(f"--fine {fine}: {why}")  # before any worker solves it
     n_fine = len(solved) if fine is not None and fine > DEFAULT_EIGENPAIRS and workers != 0 \
         else 0
     if n_fine:  # --fine: each mesh's larger basis too, solved after the default one
@@ -741,7 +743,8 @@ def _add_refinement(p: argparse.ArgumentParser) -> None:
                    help=f"refine the chosen map further, to K eigenmodes (default K: {FINE_K}): "
                         "finer maps (TOSCA's right maps: mean error -11 %%) for about 1.2 s "
                         "more on 5k-vertex meshes (the extra eigenpairs are solved in the "
-                        "background workers)")
+                        "background workers; K at most a quarter of the smaller mesh's "
+                        "vertices)")
     p.add_argument("--report", metavar="PATH.json", default=None,
                    help="also write a JSON report: files, vertex counts, method, landmarks, "
                         "orientation, quality (0..1), suspect, timings, and what loading "

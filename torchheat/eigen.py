@@ -44,6 +44,8 @@ __all__ = [
     "cotan_eigenpairs",
     "EigenWorkers",
     "DEFAULT_EIGENPAIRS",
+    "FINE_MAX_SHARE",
+    "fine_k_problem",
     "ARPACK_TOL",
     "SOLVER_TOL",
     "EigensolverError",
@@ -60,6 +62,25 @@ SOLVER_TOL = 1e-9
 
 #: Eigenpairs per shape of the matching pipeline (:func:`torchheat.matching.prepare`).
 DEFAULT_EIGENPAIRS = 100
+
+#: A fine map's basis (``match(fine_k=K)``, ``--fine K``) may hold at most this share of the
+#: vertices of the smaller shape. Linear finite elements get eigenvalue ``k`` wrong by a
+#: relative ``O(k / n)``, so modes near ``n / 4`` describe the mesh more than the shape, and
+#: the cost grows about as ``k^3`` (TOSCA 5k pair, one thread: 200 modes ~1.3 s, 400 modes 10 s,
+#: 1000 modes 58 s; 5000 modes was a dense solve and a ZoomOut of hours).
+FINE_MAX_SHARE = 0.25
+
+
+def fine_k_problem(k: int, n: int) -> str | None:
+    """Why a fine map of ``k`` modes cannot be asked of shapes whose smaller has ``n``
+    vertices (None if it can); see :data:`FINE_MAX_SHARE`."""
+    top = int(FINE_MAX_SHARE * n)
+    if k <= top:
+        return None
+    return (f"{k} eigenmodes is more than a quarter of the {n} vertices of the smaller shape: "
+            f"such modes describe the mesh more than the shape, and the cost grows quickly "
+            f"(1000 modes take ~1 min at 5k vertices); ask for at most {top} (200 is the "
+            "default of --fine)")
 
 
 def cotmatrix_scipy(V: np.ndarray, F: np.ndarray) -> sp.csr_matrix:

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from ..eigen import fine_k_problem
 from ..heat import blas_threads, threads
 from ..mesh import Mesh
 from .background import _Background
@@ -245,8 +246,10 @@ def match(
         ``Preprocess(k=200)`` and prepared with ``k=100`` has them: no eigensolve); the choice
         of the map is unchanged. TOSCA
         5k, 16 pairs (two per class): mean eps 0.0144 -> 0.0118 at 200 modes, for about 0.5 s
-        per pair plus 0.5 s per shape's eigensolve (RESULTS.md, nineteenth session). Default
-        None: the maps stay at the choice's size.
+        per pair plus 0.5 s per shape's eigensolve (RESULTS.md, nineteenth session). At most a
+        quarter of the smaller shape's vertices (``eigen.FINE_MAX_SHARE``: higher modes
+        describe the mesh more than the shape, and cost about ``k^3``). Default None: the maps
+        stay at the choice's size.
     trimmed_twins : bool
         (``zoomout=True``, two whole shapes) Give every orientation-preserving ZoomOut
         candidate its orientation-trimmed twin (see ``zoomout``; ``--no-trimmed-twins``).
@@ -413,6 +416,8 @@ def match(
         kw = {"times": "adaptive" if times is None else times, "max_features": max_features}
         src = _as_prepared(source, **kw)
         tgt = _as_prepared(target, **kw) if target is not source else src
+        if fine_k is not None and (why := fine_k_problem(int(fine_k), min(src.n, tgt.n))):
+            raise ValueError(f"fine_k={fine_k}: {why}")
         part = None
         if partial and partial_scale == "unit":
             # matched as a whole shape (both unit-area); only the quality reads it as a piece
