@@ -469,6 +469,23 @@ def test_bad_input(asym_pair):
     for bad in (3.5, (2, 7.25), "3", True):
         with pytest.raises(TypeError, match="is not a vertex index"):
             match(S, T, landmark=bad, method="paper")
+    # numeric options below their least meaningful value: refine_samples=0 returned a map of
+    # no meaning without a word, zoomout_samples=1 / orientation_samples=1 failed with "too
+    # many indices", num_threads=0 in torch; now each is named
+    for kw, err, text in ((dict(refine_samples=0), ValueError, "refine_samples=0: must be at "
+                           "least 1"),
+                          (dict(zoomout_samples=1), ValueError, "at least 3"),
+                          (dict(orientation_samples=2), ValueError, "at least 3"),
+                          (dict(num_threads=0), ValueError, "num_threads=0"),
+                          (dict(score_samples=0), ValueError, "score_samples"),
+                          (dict(refine_log_floor=0.0), ValueError, "must be positive"),
+                          (dict(orientation_weight=float("nan")), ValueError, "finite"),
+                          (dict(partial_margin=-0.1), ValueError, "non-negative"),
+                          (dict(refine_keep=0), ValueError, "refine_keep"),
+                          (dict(refine_samples=48.0), TypeError, "must be an integer"),
+                          (dict(n_candidates=None), TypeError, "n_candidates")):
+        with pytest.raises(err, match=text):
+            match(S, T, **kw)
     ref = match(S, T, landmark=(3, 5), method="paper")
     for same in ((np.int64(3), torch.tensor(5)), (3.0, 5)):  # integers of any kind
         assert match(S, T, landmark=same, method="paper").landmarks[0] == ref.landmarks[0]

@@ -3,6 +3,8 @@ value (built by keyword from ``match``'s arguments)."""
 
 from __future__ import annotations
 
+import math
+import operator
 from dataclasses import dataclass
 
 
@@ -41,3 +43,57 @@ class _Options:
     reoriented: bool = True
     polished: bool = True  # _spectral_choice polishes the candidates of an unclear choice
     tie_break: bool = True  # an ambiguous choice goes by the wave kernel signatures
+
+
+#: ``match``'s numeric options and their least meaningful values (None allowed where the
+#: option has a None meaning): counts of things, sample sizes (the orientation test reads
+#: triangles of samples: at least 3), weights and ratios. Below them the pipeline crashed
+#: with an unrelated message (``zoomout_samples=1``: "too many indices") or, worse, returned
+#: a map of no meaning without a word (``refine_samples=0``).
+_LEAST: dict[str, tuple[float, bool, bool]] = {
+    # name: (least value, integer, None allowed)
+    "landmarks": (1, True, False),
+    "n_candidates": (1, True, False),
+    "refine_samples": (1, True, False),
+    "refine_iterations": (0, True, False),
+    "max_features": (1, True, False),
+    "score_samples": (1, True, True),
+    "mirror_energy_ratio": (1.0, False, True),
+    "orientation_weight": (0.0, False, False),
+    "fixed_weight": (0.0, False, False),
+    "refine_log_floor": (0.0, False, True),
+    "expand_top": (0, True, False),
+    "source_landmarks": (1, True, True),
+    "extra_candidates": (0, True, False),
+    "refine_keep": (1, True, True),  # or "auto"
+    "orientation_samples": (3, True, False),
+    "num_threads": (1, True, True),
+    "zoomout_samples": (3, True, False),
+    "zoomout_k": (1, True, True),
+    "zoomout_hypotheses": (1, True, False),
+    "fine_k": (1, True, True),
+    "partial_margin": (0.0, False, False),
+}
+
+
+def _check_numbers(values: dict) -> None:
+    """Refuse ``match``'s numeric options below :data:`_LEAST` (or of the wrong kind) with a
+    ``ValueError`` / ``TypeError`` that names the option; ``values``: name -> value."""
+    for name, value in values.items():
+        least, integer, none_ok = _LEAST[name]
+        if (value is None and none_ok) or (name == "refine_keep" and value == "auto"):
+            continue
+        try:
+            if isinstance(value, bool) or value is None:
+                raise TypeError
+            v = operator.index(value) if integer else float(value)
+        except (TypeError, ValueError):
+            kind = "an integer" if integer else "a number"
+            raise TypeError(f"{name} must be {kind}, not {value!r}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, not {value!r}")
+        strict = name == "refine_log_floor"  # the log of a floor of 0 is -inf
+        if v < least or (strict and v <= least):
+            bound = ("positive" if strict else "non-negative" if least == 0
+                     else f"at least {least:g}")
+            raise ValueError(f"{name}={value!r}: must be {bound}")

@@ -27,7 +27,7 @@ from .landmarks import (
     dense_map,
 )
 from .nn import WORK_BYTES, _TreeCache
-from .options import _Options
+from .options import _LEAST, _check_numbers, _Options
 from .partial import (
     PARTIAL_MARGIN,
     _agreement,
@@ -359,6 +359,11 @@ def match(
     MeshError
         A mesh too small to match (fewer than ``k = 100`` vertices or no interior vertex,
         see :func:`prepare`).
+    ValueError, TypeError
+        An unknown ``method`` / ``engine`` / ``partial_scale``, a numeric option of the wrong
+        kind or below its least meaningful value (counts >= 1, sample sizes of the
+        orientation test >= 3, weights >= 0; ``options._LEAST``), a landmark that is no
+        vertex index, ``fine_k`` where it does not apply or above a quarter of the vertices.
 
     Examples
     --------
@@ -378,6 +383,7 @@ def match(
     >>> pairs = tosca_remeshed_5k(pairs="test", preprocess=Preprocess())  # doctest: +SKIP
     >>> corr = match(pairs[0])  # doctest: +SKIP
     """
+    _check_numbers({k: v for k, v in locals().items() if k in _LEAST})
     if target is None:
         source, target = _pair_shapes(source)
     if fine_k is not None and (partial or not zoomout or method != "refine"):
@@ -399,10 +405,6 @@ def match(
         raise ValueError(f"unknown method {method!r}; use 'refine' or 'paper'")
     if engine not in ("auto", "cdist", "kdtree"):
         raise ValueError(f"unknown engine {engine!r}; use 'auto', 'cdist' or 'kdtree'")
-    if landmarks < 1:
-        raise ValueError("landmarks must be >= 1")
-    if fine_k is not None and int(fine_k) < 1:
-        raise ValueError(f"fine_k must be a positive number of eigenmodes, not {fine_k}")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     # hypotheses chosen by ZoomOut (a piece's are chosen by energy and orientation)
