@@ -195,6 +195,18 @@ def test_landmark_out_of_range(pair, tmp_path, capsys, landmark):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("flag", [["--threads", "0"], ["--workers", "-1"], ["--fine", "0"]])
+def test_counts_below_their_least_refused_by_name(pair, tmp_path, capsys, flag):
+    # --workers -1 ran in-process without a word; --threads 0 failed inside torch
+    src, tgt, _, _ = pair
+    out = tmp_path / "map.txt"
+    with pytest.raises(SystemExit) as exc:
+        main(["match", str(src), str(tgt), "-o", str(out), *flag])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"argument {flag[0]}: must be at least" in err
+    assert not out.exists()
+
+
 def test_unwritable_output_dir(pair, tmp_path, capsys):
     src, tgt, _, _ = pair
     out = tmp_path / "no_such_dir" / "map.txt"

@@ -719,6 +719,19 @@ class _Formatter(argparse.RawDescriptionHelpFormatter):
         )
 
 
+def _int_at_least(least: int) -> Callable[[str], int]:
+    """An argparse type: an integer of at least ``least`` (a smaller one is refused by
+    argparse with the option's name instead of failing later, or being taken for 0)."""
+    def parse(text: str) -> int:
+        value = int(text)  # not an integer: argparse's "invalid int value"
+        if value < least:
+            raise argparse.ArgumentTypeError(f"must be at least {least}, not {value}")
+        return value
+
+    parse.__name__ = "int"
+    return parse
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--engine", choices=("auto", "cdist", "kdtree"), default="auto",
                    help="nearest-neighbour engine of the L-infinity searches (default: auto, "
@@ -726,9 +739,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--times", choices=("adaptive", "paper"), default="adaptive",
                    help="heat kernel time samples: 'adaptive' (from the shape's spectrum) or "
                         "'paper' (10 in [0.001, 2] at unit area); default: adaptive")
-    p.add_argument("--threads", type=int, default=None, metavar="N",
+    p.add_argument("--threads", type=_int_at_least(1), default=None, metavar="N",
                    help="torch threads (default: torch's own choice)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
+    p.add_argument("--workers", type=_int_at_least(0), default=None, metavar="N",
                    help="background processes that solve the meshes' eigenpairs while torch "
                         "is imported (default: one per mesh if 2+ CPUs are usable, Linux; "
                         "0: solve in-process)")
@@ -739,7 +752,8 @@ def _add_refinement(p: argparse.ArgumentParser) -> None:
                    help="keep the heat-kernel map of the refined pipeline instead of refining "
                         "it spectrally (ZoomOut, Melzi et al. 2019; the default chooses among "
                         "hypotheses by it too)")
-    p.add_argument("--fine", nargs="?", type=int, const=FINE_K, default=None, metavar="K",
+    p.add_argument("--fine", nargs="?", type=_int_at_least(1), const=FINE_K, default=None,
+                   metavar="K",
                    help=f"refine the chosen map further, to K eigenmodes (default K: {FINE_K}): "
                         "finer maps (TOSCA's right maps: mean error -11 %%) for about 1.2 s "
                         "more on 5k-vertex meshes (the extra eigenpairs are solved in the "
