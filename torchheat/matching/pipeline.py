@@ -236,7 +236,11 @@ def match(
         functional map. False: the
         heat-kernel maps of correspondence augmentation, as before (``--no-zoomout``).
     zoomout_samples, zoomout_k, zoomout_hypotheses : int
-        ZoomOut settings (see ``zoomout``).
+        ZoomOut settings (see ``zoomout``). ``zoomout_k`` caps the size the chosen maps are
+        refined to; two whole shapes are compared at 100 modes, so on them it acts only
+        above 100, where the shapes hold more eigenpairs (``prepare(..., k=K)``); for
+        ``fine_k``'s larger bases see ``fine_k``. Pieces and self-maps are refined straight
+        to it.
     fine_k : int, optional
         (``zoomout=True``, two whole shapes or a self-map) Refine the direct and symmetric maps
         further, to ``fine_k`` eigenmodes (e.g. 200; ``torchheat match --fine``): ZoomOut on
