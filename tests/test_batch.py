@@ -270,6 +270,15 @@ def test_bad_config_gives_one_line_error(tmp_path, capsys):
                    "pairs: [[a, b]], gt: identiy}\n")  # a typo is refused the same way
     assert batch.main([str(bad)]) == 2
     assert "got 'identiy'" in capsys.readouterr().err
+    # match options are checked before any pair runs (a typo failed every pair, each after
+    # its eigensolves)
+    for opts, text in (("{zoomot: false}", "unknown match option 'zoomot' (did you mean "
+                                           "'zoomout'?)"),
+                       ("{refine_samples: 0}", "refine_samples=0: must be at least 1")):
+        bad.write_text(f"name: x\ndataset: scape\nmatch: {opts}\n")
+        assert batch.main([str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert f"bad.yaml: match: {text}" in err and "\n" not in err.strip()
 
 
 def test_roles_share_one_eigensolve_but_not_their_times():

@@ -112,6 +112,12 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
             raise ConfigError(f"{where}: '{key}' must be a mapping")
     if cfg["task"] not in _TASKS:
         raise ConfigError(f"{where}: 'task' must be one of {list(_TASKS)}, got {cfg['task']!r}")
+    from ..matching.pipeline import check_options  # (imports torch, as the run will)
+
+    try:  # a misspelt or meaningless option failed every pair, each after its eigensolves
+        check_options(cfg["match"])
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: match: {exc}") from None
     bad = set(cfg["prepare"]) - _PREPARE_KEYS
     if bad:
         raise ConfigError(f"{where}: unknown prepare options {sorted(bad)}; allowed: "

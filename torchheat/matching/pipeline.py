@@ -577,6 +577,35 @@ def _paper_maps(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Ten
     return results[0], (results[1] if len(results) > 1 else None)
 
 
+def check_options(options: dict[str, Any]) -> None:
+    """Check keyword options for :func:`match` before any work: unknown names (with the
+    closest known one) and numeric values below their least meaningful value, as ``match``
+    itself refuses them. For callers that hold options for many matches (a batch config).
+
+    Raises
+    ------
+    TypeError, ValueError
+
+    Examples
+    --------
+    >>> check_options({"fine_k": 200, "zoomout": False})
+    >>> check_options({"zoomot": False})
+    Traceback (most recent call last):
+    ...
+    TypeError: unknown match option 'zoomot' (did you mean 'zoomout'?)
+    """
+    import difflib
+    import inspect
+
+    known = [k for k in inspect.signature(match).parameters if k not in ("source", "target")]
+    for name in options:
+        if name not in known:
+            near = difflib.get_close_matches(str(name), known, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            raise TypeError(f"unknown match option {name!r}{hint}")
+    _check_numbers({k: v for k, v in options.items() if k in _LEAST})
+
+
 def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             p2: int | None, auto_landmark: bool, score_rows: torch.Tensor | None,
             opts: _Options, bg: _Background, timings: dict, trees: _TreeCache,
