@@ -279,6 +279,13 @@ def test_bad_config_gives_one_line_error(tmp_path, capsys):
         assert batch.main([str(bad)]) == 2
         err = capsys.readouterr().err
         assert f"bad.yaml: match: {text}" in err and "\n" not in err.strip()
+    for opts, text in (("{k: 5.5}", "k must be an integer, not 5.5"),
+                       ("{feature_time: -3}", "feature_time=-3: must be positive"),
+                       ("{kind: cot}", "unknown Laplacian kind 'cot'")):
+        bad.write_text(f"name: x\ndataset: scape\nprepare: {opts}\n")
+        assert batch.main([str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert f"bad.yaml: prepare: {text}" in err and "\n" not in err.strip()
 
 
 def test_roles_share_one_eigensolve_but_not_their_times():

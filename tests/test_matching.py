@@ -486,6 +486,14 @@ def test_bad_input(asym_pair):
                           (dict(n_candidates=None), TypeError, "n_candidates")):
         with pytest.raises(err, match=text):
             match(S, T, **kw)
+    # prepare's: k=5.5 solved 5 eigenpairs, feature_time=-3 overflowed into meaningless
+    # features, k=0 failed on "adaptive times"
+    for kw, err, text in ((dict(k=5.5), TypeError, "k must be an integer"),
+                          (dict(k=0), ValueError, "k=0: must be at least 1"),
+                          (dict(feature_time=-3.0), ValueError, "must be positive"),
+                          (dict(max_features=0), ValueError, "max_features")):
+        with pytest.raises(err, match=text):
+            prepare(S.mesh, **kw)
     ref = match(S, T, landmark=(3, 5), method="paper")
     for same in ((np.int64(3), torch.tensor(5)), (3.0, 5)):  # integers of any kind
         assert match(S, T, landmark=same, method="paper").landmarks[0] == ref.landmarks[0]

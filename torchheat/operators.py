@@ -335,6 +335,23 @@ def _robust(V: np.ndarray, F: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]
     return sp.csr_matrix(W), sp.csr_matrix(M)
 
 
+def check_kind(kind: str, boundary: str) -> None:
+    """Refuse an unknown Laplacian ``kind`` or ``boundary`` condition (``ValueError``).
+
+    Examples
+    --------
+    >>> check_kind("cotan", "dirichlet")
+    >>> check_kind("cot", "neumann")
+    Traceback (most recent call last):
+    ...
+    ValueError: unknown Laplacian kind 'cot'; use 'cotan', 'fem' or 'robust'
+    """
+    if kind not in ("cotan", "fem", "robust"):
+        raise ValueError(f"unknown Laplacian kind {kind!r}; use 'cotan', 'fem' or 'robust'")
+    if boundary not in ("neumann", "dirichlet"):
+        raise ValueError(f"unknown boundary condition {boundary!r}; use 'neumann' or 'dirichlet'")
+
+
 def laplacian(
     mesh: Mesh,
     kind: Kind = "cotan",
@@ -380,10 +397,7 @@ def laplacian(
     >>> round(float(L.mass.sum()), 12)
     1.0
     """
-    if kind not in ("cotan", "fem", "robust"):
-        raise ValueError(f"unknown Laplacian kind {kind!r}; use 'cotan', 'fem' or 'robust'")
-    if boundary not in ("neumann", "dirichlet"):
-        raise ValueError(f"unknown boundary condition {boundary!r}; use 'neumann' or 'dirichlet'")
+    check_kind(kind, boundary)
     V, F = mesh.numpy()
     if kind == "robust":
         W, M = _robust(V, F)

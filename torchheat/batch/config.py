@@ -112,12 +112,21 @@ def load_config(config: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]
             raise ConfigError(f"{where}: '{key}' must be a mapping")
     if cfg["task"] not in _TASKS:
         raise ConfigError(f"{where}: 'task' must be one of {list(_TASKS)}, got {cfg['task']!r}")
+    from ..matching.options import _PREPARE_LEAST, _check_numbers
     from ..matching.pipeline import check_options  # (imports torch, as the run will)
+    from ..operators import check_kind
 
-    try:  # a misspelt or meaningless option failed every pair, each after its eigensolves
+    # a misspelt or meaningless option failed every pair, each after its eigensolves
+    try:
         check_options(cfg["match"])
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: match: {exc}") from None
+    pp = cfg["prepare"]
+    try:
+        _check_numbers({k: v for k, v in pp.items() if k in _PREPARE_LEAST}, _PREPARE_LEAST)
+        check_kind(pp.get("kind") or "cotan", pp.get("boundary") or "neumann")
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: prepare: {exc}") from None
     bad = set(cfg["prepare"]) - _PREPARE_KEYS
     if bad:
         raise ConfigError(f"{where}: unknown prepare options {sorted(bad)}; allowed: "

@@ -75,12 +75,29 @@ _LEAST: dict[str, tuple[float, bool, bool]] = {
     "partial_margin": (0.0, False, False),
 }
 
+#: ``prepare``'s numeric options, as :data:`_LEAST` (``prepare(k=5.5)`` solved 5 eigenpairs,
+#: ``feature_time=-3`` overflowed into meaningless feature points, ``k=0`` failed on "adaptive
+#: times"). ``feature_time`` and ``rtol`` must be positive: :data:`_POSITIVE`.
+_PREPARE_LEAST: dict[str, tuple[float, bool, bool]] = {
+    "k": (1, True, True),
+    "max_features": (1, True, False),
+    "feature_time": (0.0, False, False),
+    "rtol": (0.0, False, False),
+    "num_threads": (1, True, True),
+}
 
-def _check_numbers(values: dict) -> None:
-    """Refuse ``match``'s numeric options below :data:`_LEAST` (or of the wrong kind) with a
-    ``ValueError`` / ``TypeError`` that names the option; ``values``: name -> value."""
+#: Options that must be above their least value, not at it (a log-floor of 0 is ``log 0``)
+_POSITIVE = frozenset({"refine_log_floor", "feature_time", "rtol"})
+
+
+def _check_numbers(values: dict, table: dict[str, tuple[float, bool, bool]] | None = None
+                   ) -> None:
+    """Refuse numeric options below their least value in ``table`` (default :data:`_LEAST`,
+    ``match``'s), or of the wrong kind, with a ``ValueError`` / ``TypeError`` that names the
+    option; ``values``: name -> value, every name in the table."""
+    table = _LEAST if table is None else table
     for name, value in values.items():
-        least, integer, none_ok = _LEAST[name]
+        least, integer, none_ok = table[name]
         if (value is None and none_ok) or (name == "refine_keep" and value == "auto"):
             continue
         try:
@@ -92,7 +109,7 @@ def _check_numbers(values: dict) -> None:
             raise TypeError(f"{name} must be {kind}, not {value!r}") from None
         if not math.isfinite(v):
             raise ValueError(f"{name} must be finite, not {value!r}")
-        strict = name == "refine_log_floor"  # the log of a floor of 0 is -inf
+        strict = name in _POSITIVE
         if v < least or (strict and v <= least):
             bound = ("positive" if strict else "non-negative" if least == 0
                      else f"at least {least:g}")

@@ -25,6 +25,7 @@ from ..descriptors import (
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh, MeshError, as_mesh
+from .options import _PREPARE_LEAST, _check_numbers
 
 __all__ = ["CachedShape", "PreparedShape", "ShapeCaches", "is_cached_shape", "prepare"]
 
@@ -315,6 +316,8 @@ def prepare(
     >>> prepare(pair.source).hk.k  # doctest: +SKIP
     100
     """
+    _check_numbers({"k": k, "max_features": max_features, "feature_time": feature_time,
+                    "rtol": rtol, "num_threads": num_threads}, _PREPARE_LEAST)
     t0 = time.perf_counter()
     cached = None  # a dataset shape's cached eigenpairs, when the heat kernel uses them
     if is_cached_shape(mesh):
