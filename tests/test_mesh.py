@@ -830,6 +830,13 @@ def test_components_meeting_at_a_seam_of_duplicated_vertices_are_named():
     with pytest.warns(MeshWarning, match=f"meet the kept one at {seam} coincident vertices"):
         kept = Mesh(V, F, name="seamed", largest_component=True)
     assert kept.n_vertices < len(V)
+    # copies a few ulps apart (an exporter computing them separately) are a seam too: the
+    # exact comparison called them plain "several components"
+    Vj = V.copy()
+    Vj[-seam:] += 1e-12 * np.random.default_rng(0).standard_normal((seam, 3))
+    assert not (Vj[-seam:] == V[-seam:]).all(axis=1).any()
+    with pytest.raises(MeshError, match=f"meet at {seam} coincident vertices"):
+        Mesh(Vj, F, name="seamed")
     # components apart: the plain advice, and no warning when the largest is kept
     a = trimesh.creation.icosphere(2)
     W = np.vstack([a.vertices, a.vertices + [3.0, 0, 0]])

@@ -728,12 +728,24 @@ def as_mesh(x: Any) -> Mesh:
 
 
 def _shared_positions(V: np.ndarray, labels: np.ndarray) -> int:
-    """Number of distinct vertex positions held by vertices of more than one label (exact
-    coordinates): where connected components meet along a seam of duplicated vertices."""
-    _, pos = np.unique(V, axis=0, return_inverse=True)
-    pos = pos.ravel()
-    pairs = np.unique(np.stack([pos, labels.astype(np.int64)], axis=1), axis=0)
-    return int((np.bincount(pairs[:, 0]) > 1).sum())
+    """Number of vertex positions held by vertices of more than one label, positions within
+    ``sqrt(DEGENERATE_REL_AREA)`` (1e-6) of the bounding-box diagonal counting as one (the
+    tolerance of the duplicated-corner check: exporters that compute a seam's two copies
+    separately leave them a few ulps apart): where connected components meet along a seam of
+    duplicated vertices."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = V.shape[0]
+    diag = float(np.linalg.norm(V.max(0) - V.min(0))) if n else 0.0
+    pairs = cKDTree(V).query_pairs(math.sqrt(DEGENERATE_REL_AREA) * diag, output_type="ndarray")
+    if not pairs.size:
+        return 0
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, pos = connected_components(graph, directed=False)  # clusters of coincident vertices
+    both = np.unique(np.stack([pos, labels.astype(np.int64)], axis=1), axis=0)
+    return int((np.bincount(both[:, 0]) > 1).sum())
 
 
 def load_mesh(
