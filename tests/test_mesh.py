@@ -576,6 +576,16 @@ def test_with_vertices():
     bad[4] = np.nan
     with pytest.raises(MeshError, match="first: vertex 4"):
         mesh.with_vertices(bad)
+    # a mirror image is wound outward as Mesh(vertices, faces) winds it (its faces kept as
+    # they were, it read inside out and matched by the mirror map)
+    mirrored = np.array(ico.vertices) * [-1.0, 1.0, 1.0]
+    fresh = Mesh(mirrored, ico.faces)
+    m2 = mesh.with_vertices(mirrored)
+    assert fresh.turned_outward and m2.turned_outward and not mesh.turned_outward
+    assert torch.equal(m2.faces, fresh.faces) and m2.flipped_faces == fresh.flipped_faces == 20
+    back = m2.with_vertices(ico.vertices)  # and back again
+    assert torch.equal(back.faces, mesh.faces) and not back.turned_outward
+    assert back.flipped_faces == 0
 
 
 def test_torch_input_is_copied_and_keeps_grad():

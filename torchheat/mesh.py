@@ -322,6 +322,7 @@ class Mesh:
         #: Whether every face was reversed because the surface was wound inside out
         #: (:func:`torchheat.topology.orient_outward`; ``check=True``)
         self.turned_outward = False
+        self._oriented = False  # set by _orient: faces consistently oriented and wound outward
         if check:
             self._check_degenerate(Vn, Fn)
             self._check_unreferenced(Fn, n)
@@ -449,6 +450,7 @@ class Mesh:
                 stacklevel=3,
             )
             return
+        self._oriented = True  # consistently: with_vertices reads the winding again
         F2, turned = orient_outward(V, F2)
         if turned:  # wound inside out: every face reversed, those turned above back again
             flipped = len(F2) - flipped
@@ -626,7 +628,9 @@ class Mesh:
         """A mesh with the same faces, name and ``vertex_map`` but new coordinates.
 
         The coordinates are checked (shape ``[n, 3]``, finite, no degenerate face); the
-        connectivity and its cached topology are reused.
+        connectivity and its cached topology are reused. Faces are wound outward for the new
+        coordinates as :class:`Mesh` winds them (a mirror image turns them all:
+        ``turned_outward`` then flips).
 
         Parameters
         ----------
@@ -664,9 +668,19 @@ class Mesh:
         new._edge_cache = self._edge_cache
         new.flipped_faces = getattr(self, "flipped_faces", 0)
         new.turned_outward = getattr(self, "turned_outward", False)
+        new._oriented = getattr(self, "_oriented", False)
         Vn = V.detach().numpy()
         new._check_finite(Vn)
         new._check_degenerate(Vn, self.faces.numpy())
+        if new._oriented:
+            # new coordinates may turn the surface inside out (a mirror image, a negative
+            # scale): wound as Mesh(vertices, faces) would wind it, else the mirror map would
+            # be taken for the direct one
+            F2, turned = orient_outward(Vn, self.faces.numpy())
+            if turned:
+                new.faces = torch.from_numpy(F2)
+                new.turned_outward = not new.turned_outward
+                new.flipped_faces = self.n_faces - new.flipped_faces
         return new
 
     def __repr__(self) -> str:
