@@ -69,6 +69,19 @@ def test_match_round_trip(pair, matched, capsys):
     assert not [p for p in os.listdir(d) if p.startswith(".")]  # no temporary files left
 
 
+def test_map_named_npy_is_a_numpy_file(pair, matched, tmp_path):
+    # '-o map.npy' wrote text under that name, which np.load refuses
+    src, tgt, _, _ = pair
+    _, out, _, _ = matched
+    npy, sym = tmp_path / "map.NPY", tmp_path / "sym.npy"
+    assert main(["match", str(src), str(tgt), "-o", str(npy), "--symmetric-out", str(sym),
+                 "--threads", "1"]) == 0
+    f = np.load(npy)
+    assert f.dtype == np.int64 and np.array_equal(f, read_map(out))
+    assert np.load(sym).shape == f.shape
+    assert sorted(os.listdir(tmp_path)) == ["map.NPY", "sym.npy"]  # nothing else, no .npy.npy
+
+
 def test_symmetric_out_written(pair):
     # the paper's pipeline always reports its next distinct candidate as the symmetric map
     # (the default pipeline reports one only when an orientation-reversing map exists)

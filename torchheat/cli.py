@@ -39,7 +39,7 @@ from typing import Any
 from ._files import atomic_writes
 from .meshio import FORMATS_HELP
 
-__all__ = ["main", "run", "build_parser", "write_map", "CLIError"]
+__all__ = ["main", "run", "build_parser", "write_map", "map_format", "CLIError"]
 
 PROG = "torchheat"
 DATA = Path(__file__).resolve().parent / "data"
@@ -116,33 +116,51 @@ def _check_output(path: Path, what: str = "output") -> Path:
     return path
 
 
-def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
-    """Write a vertex map: one 0-based target index per line, in source vertex order.
+def write_map(path: str | os.PathLike[str], fmap: Any, fmt: str | None = None) -> None:
+    """Write a vertex map in source vertex order: one 0-based target index per line, or a
+    NumPy ``.npy`` file of int64 (``np.load`` reads it back).
 
     Parameters
     ----------
     path : str or os.PathLike
-        Output text file (overwritten; not atomic by itself, the CLI writes to a temporary
-        file first).
+        Output file (overwritten; not atomic by itself, the CLI writes to a temporary file
+        first).
     fmap : array_like or torch.Tensor of int, shape (n,)
+    fmt : {"txt", "npy"}, optional
+        Default: ``"npy"`` when ``path`` ends in ``.npy`` (any case), else ``"txt"``. (A
+        temporary file is written with the format of the name it will get.)
 
     Examples
     --------
     >>> import os, tempfile
-    >>> p = os.path.join(tempfile.mkdtemp(), "map.txt")
-    >>> write_map(p, [2, 0, 1])
-    >>> open(p).read()
+    >>> import numpy as np
+    >>> d = tempfile.mkdtemp()
+    >>> write_map(os.path.join(d, "map.txt"), [2, 0, 1])
+    >>> open(os.path.join(d, "map.txt")).read()
     '2\\n0\\n1\\n'
+    >>> write_map(os.path.join(d, "map.npy"), [2, 0, 1])
+    >>> np.load(os.path.join(d, "map.npy")).tolist()
+    [2, 0, 1]
     """
     import numpy as np
 
     from ._arrays import to_numpy
 
     f = to_numpy(fmap, dtype=np.int64).reshape(-1)
+    if (fmt or map_format(path)) == "npy":
+        with open(path, "wb") as fh:  # a handle: np.save would append .npy to a bare name
+            np.save(fh, f)
+        return
     with open(path, "w", encoding="ascii") as fh:
         if f.size:
             fh.write("\n".join(map(str, f.tolist())))
             fh.write("\n")
+
+
+def map_format(path: str | os.PathLike[str]) -> str:
+    """``"npy"`` for a path ending in ``.npy`` (any case), else ``"txt"`` (see
+    :func:`write_map`)."""
+    return "npy" if Path(path).suffix.lower() == ".npy" else "txt"
 
 
 def _plausible(V: Any, F: Any) -> bool:
@@ -479,15 +497,18 @@ def _cmd_match(args: argparse.Namespace) -> int:
               f"default method with ZoomOut has them); {rival_out} is not written",
               file=sys.stderr)
     with atomic_writes() as outs:
-        outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the files' numbering
+        # the files' numbering
+        outs.stage(out, lambda p: write_map(p, corr.full_map(), map_format(out)))
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
                        lambda p: _write_report(p, corr, args.source, args.target,
                                                (source, target)))
         if sym_out is not None and corr.symmetric_map is not None:
-            outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
+            outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map(),
+                                                   map_format(sym_out)))
         if rival_out is not None and corr.rival_map is not None:
-            outs.stage(rival_out, lambda p: write_map(p, corr.full_rival_map()))
+            outs.stage(rival_out, lambda p: write_map(p, corr.full_rival_map(),
+                                                     map_format(rival_out)))
         if png is not None:
             from .viz import color_transfer
 
@@ -533,7 +554,8 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
         print(f"{PROG}: warning: no orientation-reversing self-map was found; the written "
               "map is the best direct self-map (close to the identity)", file=sys.stderr)
     with atomic_writes() as outs:
-        outs.stage(out, lambda p: write_map(p, corr.full_map()))  # the file's numbering
+        # the file's numbering
+        outs.stage(out, lambda p: write_map(p, corr.full_map(), map_format(out)))
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
                        lambda p: _write_report(p, corr, args.mesh, args.mesh, (mesh, mesh)))
@@ -602,7 +624,7 @@ def _cmd_demo_partial(args: argparse.Namespace) -> int:
     dist = np.linalg.norm(W[f] - W[truth], axis=1) / diag
     within = float(np.mean(dist <= 0.02))
     with atomic_writes() as outs:
-        outs.stage(map_path, lambda p: write_map(p, f))
+        outs.stage(map_path, lambda p: write_map(p, f, map_format(map_path)))
         from .viz import color_transfer
 
         outs.stage(png_path, lambda p: color_transfer(
@@ -663,7 +685,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                          "the direct map, i.e. the direct map is the left/right mirror; "
                          "intrinsic descriptors cannot tell a map from its mirror image")
     with atomic_writes() as outs:
-        outs.stage(map_path, lambda p: write_map(p, f))
+        outs.stage(map_path, lambda p: write_map(p, f, map_format(map_path)))
         from .viz import color_transfer
 
         outs.stage(png_path, lambda p: color_transfer(
