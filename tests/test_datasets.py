@@ -222,7 +222,9 @@ def test_preprocess_key_is_stable_and_parameter_sensitive():
         Preprocess(k=12).key(),
     }
     assert len(keys) == 6
-    for bad in ({"k": 0}, {"kind": "x"}, {"boundary": "x"}, {"times": [0.0]}):
+    # (k=5.5 solved 5 eigenpairs; a NaN time passed the positivity test)
+    for bad in ({"k": 0}, {"kind": "x"}, {"boundary": "x"}, {"times": [0.0]}, {"k": 5.5},
+                {"times": [float("nan")]}, {"times": [1.0, float("inf")]}):
         with pytest.raises(ValueError):
             Preprocess(**bad)
 

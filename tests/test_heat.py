@@ -219,6 +219,16 @@ def test_bad_queries(small_mesh):
         hk.columns([small_mesh.n_vertices])
     with pytest.raises(ValueError, match="positive"):
         HeatKernel(small_mesh, times=[0.0, 1.0])
+    # a NaN or an infinite time passed the positivity test ("cannot convert float NaN" later)
+    for bad in ([float("nan")], [0.1, float("inf")]):
+        with pytest.raises(ValueError, match="positive finite"):
+            HeatKernel(small_mesh, times=bad)
+        with pytest.raises(ValueError, match="positive finite"):
+            hk.with_times(bad)
+    # a non-integral source was truncated to a vertex
+    with pytest.raises(TypeError, match="integer indices"):
+        hk.columns([1.5])
+    assert torch.equal(hk.columns([1.0, 2]), hk.columns([1, 2]))
     with pytest.raises(ValueError, match="method"):
         HeatKernel(small_mesh, method="magic")
     with pytest.raises(ValueError, match="spectral"):

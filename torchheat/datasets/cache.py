@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -113,11 +114,12 @@ class Preprocess:
     def __post_init__(self) -> None:
         if self.times is not None:
             t = tuple(float(x) for x in to_numpy(self.times, dtype=np.float64).ravel())
-            if not t or min(t) <= 0:
-                raise ValueError("times must be a non-empty sequence of positive numbers")
+            if not t or not all(math.isfinite(x) and x > 0 for x in t):
+                raise ValueError("times must be a non-empty sequence of positive finite "
+                                 f"numbers, got {list(t)[:5]}")
             object.__setattr__(self, "times", t)
-        if int(self.k) < 1:
-            raise ValueError(f"k must be >= 1, got {self.k}")
+        if isinstance(self.k, bool) or not float(self.k).is_integer() or int(self.k) < 1:
+            raise ValueError(f"k must be an integer >= 1, got {self.k!r}")  # 5.5 was 5
         object.__setattr__(self, "k", int(self.k))
         if self.kind not in _KINDS:
             raise ValueError(f"unknown kind {self.kind!r}; use one of {_KINDS}")

@@ -135,6 +135,16 @@ class _Plan:
     timings: dict = field(default_factory=dict)
 
 
+def _checked_times(times: Sequence[float] | torch.Tensor) -> torch.Tensor:
+    """``times`` as a flat float64 tensor, refused unless non-empty, positive and finite
+    (a NaN passed the positivity test and failed later as "cannot convert float NaN")."""
+    t = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
+    if t.numel() == 0 or not bool((torch.isfinite(t) & (t > 0)).all()):
+        raise ValueError(f"times must be a non-empty list of positive finite numbers, got "
+                         f"{t[:5].tolist()}{' ...' if t.numel() > 5 else ''}")
+    return t
+
+
 class HeatKernel:
     """Heat kernel solver for one shape: precompute once, query many sources.
 
@@ -236,11 +246,7 @@ class HeatKernel:
         lap = self.laplacian
         if not lap.normalized:
             raise ValueError("HeatKernel expects a unit-area operator (laplacian(normalize=True))")
-        self.times = (
-            default_times() if times is None else torch.as_tensor(times, dtype=torch.float64)
-        ).reshape(-1)
-        if self.times.numel() == 0 or bool((self.times <= 0).any()):
-            raise ValueError("times must be a non-empty list of positive numbers")
+        self.times = _checked_times(default_times() if times is None else times)
         if rtol <= 0:
             raise ValueError("rtol must be positive")
         if method == "auto":
@@ -420,10 +426,7 @@ class HeatKernel:
         self._retime(times)
 
     def _retime(self, times: Sequence[float] | torch.Tensor) -> None:
-        t = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
-        if t.numel() == 0 or bool((t <= 0).any()):
-            raise ValueError("times must be a non-empty list of positive numbers")
-        self.times = t
+        self.times = _checked_times(times)
         setup = self._plan.timings  # the eigenbasis and lambda_max are the same
         self._plan = self._make_plan()
         self._plan.timings.update(setup)
@@ -536,7 +539,11 @@ class HeatKernel:
 
     # ---------------------------------------------------------------------------------
     def _reduced_sources(self, sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        src = to_numpy(sources, dtype=np.int64).reshape(-1)
+        raw = to_numpy(sources)
+        if raw.dtype.kind == "b" or (raw.dtype.kind in "fc" and not np.all(raw == np.round(raw))):
+            raise TypeError(f"source vertices must be integer indices, got {raw.dtype} values "
+                            f"{raw.reshape(-1)[:5].tolist()}")  # 1.5 was read as vertex 1
+        src = raw.astype(np.int64, copy=False).reshape(-1)
         if src.size and (src.min() < 0 or src.max() >= self.n):
             bad = src[(src < 0) | (src >= self.n)][:5].tolist()
             raise IndexError(f"source vertices {bad} out of range for a mesh of {self.n} vertices")
