@@ -1164,3 +1164,19 @@ def test_match_leaves_the_callers_target_alone(asym_pair):
     assert torch.equal(T.hk.times, own)
     assert torch.equal(first.map, fresh)
     assert exact(first.map, perm) == 1.0
+
+
+def test_report_says_how_the_map_was_made(asym_pair):
+    # the options given that differ from match's defaults, and the version, are in the report
+    # (a report without them could not be reproduced)
+    import torchheat
+
+    S, T, _ = asym_pair
+    corr = match(S, T, landmark=(np.int64(3), 5), method="paper", n_candidates=3,
+                 orientation_weight=2.0)
+    rep = json.loads(json.dumps(corr.report()))
+    assert rep["version"] == torchheat.__version__
+    assert rep["options"] == {"landmark": [3, 5], "method": "paper", "orientation_weight": 2.0}
+    assert match(S, T, method="paper").report()["options"] == {"method": "paper"}
+    sym = symmetry(S.mesh, method="paper").report()["options"]  # symmetry's own settings too
+    assert sym["method"] == "paper" and sym["n_candidates"] == 8

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import inspect
 import math
 import time
 from collections.abc import Sequence
@@ -64,6 +66,46 @@ from .select import (
 __all__ = ["match"]
 
 
+def _jsonable(v: Any) -> Any:
+    """An option's value as JSON can hold it (tuples and tensors as lists, numpy scalars as
+    numbers)."""
+    if isinstance(v, torch.Tensor):
+        return v.tolist()
+    if isinstance(v, tuple | list):
+        return [_jsonable(x) for x in v]
+    if hasattr(v, "item") and not isinstance(v, str | bytes):
+        return v.item()
+    return v
+
+
+def _records_options(fn: Any) -> Any:
+    """``fn`` (:func:`match`) that notes in ``corr.info["options"]`` the keyword options its
+    caller gave that differ from the defaults (JSON-able; what :meth:`Correspondence.report`
+    writes, so that a report says how its map was made). The outermost call writes last."""
+    sig = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        corr = fn(*args, **kwargs)
+        given = sig.bind_partial(*args, **kwargs).arguments
+        opts = {}
+        for name, v in given.items():
+            if name in ("source", "target"):
+                continue
+            default = sig.parameters[name].default
+            try:
+                same = v is default or bool(v == default)
+            except (TypeError, ValueError, RuntimeError):  # arrays: compared element-wise
+                same = False
+            if not same:
+                opts[name] = _jsonable(v)
+        corr.info["options"] = opts
+        return corr
+
+    return wrapper
+
+
+@_records_options
 def match(
     source: Mesh | PreparedShape | CachedShape | Any,
     target: Mesh | PreparedShape | CachedShape | None = None,

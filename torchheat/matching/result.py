@@ -126,14 +126,20 @@ class Correspondence:
         return None if q is None else q.suspect
 
     def report(self) -> dict:
-        """A JSON-able summary: vertex counts, method, the search that gave the map
+        """A JSON-able summary: torchheat's version, the options given that differ from
+        :func:`~torchheat.match`'s defaults, vertex counts, method, the search that gave the map
         (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), the tie-break of an
         ambiguous choice (``[chosen error, rival error]``), landmarks, orientation, quality,
         suspect, timings (what ``torchheat match --report`` writes, with the file
         names)."""
+        from .. import __version__
+
         q = self.quality
         o = self.orientation
         return {
+            "version": __version__,
+            # the options given that differ from match's defaults (symmetry's own included)
+            "options": dict(self.info.get("options", {})),
             "n_source": int(self.map.numel()),
             "n_target": None if self.info.get("n_target") is None
             else int(self.info["n_target"]),
