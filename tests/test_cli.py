@@ -271,6 +271,21 @@ def test_color_transfer_png(tmp_path):
     assert path3.read_bytes()[:8] == PNG_MAGIC
     assert path3.stat().st_size > 10_000
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]  # no temporary files
+    # the format follows the extension (a .pdf or .svg was written as PNG bytes)
+    assert color_transfer(mesh, mesh, f, tmp_path / "ct.PDF").read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in color_transfer(mesh, mesh, f, tmp_path / "ct.svg").read_bytes()[:500]
+    assert color_transfer(mesh, mesh, f, tmp_path / "ct.jpg").read_bytes()[:2] == b"\xff\xd8"
+    with pytest.raises(ValueError, match="unknown picture format '.gif'"):
+        color_transfer(mesh, mesh, f, tmp_path / "ct.gif")
+
+
+def test_picture_format_refused_before_work(pair, tmp_path, capsys):
+    src, tgt, _, _ = pair
+    out = tmp_path / "map.txt"
+    assert main(["match", str(src), str(tgt), "-o", str(out), "--png",
+                 str(tmp_path / "ct.gif")]) != 0
+    err = capsys.readouterr().err
+    assert "unknown picture format '.gif'" in err and not out.exists()
 
 
 def test_color_transfer_rejects_bad_map(tmp_path):

@@ -116,6 +116,20 @@ def _check_output(path: Path, what: str = "output") -> Path:
     return path
 
 
+def _check_picture(path: str | None) -> Path | None:
+    """``--png PATH`` checked before any work: writable, and a format the picture can take
+    (from the extension: a .pdf or .svg was written as PNG bytes under that name)."""
+    if not path:
+        return None
+    from .viz import picture_format
+
+    try:
+        picture_format(path)
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    return _check_output(Path(path), "picture")
+
+
 def write_map(path: str | os.PathLike[str], fmap: Any, fmt: str | None = None) -> None:
     """Write a vertex map in source vertex order: one 0-based target index per line, or a
     NumPy ``.npy`` file of int64 (``np.load`` reads it back).
@@ -447,7 +461,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     sym_out = _check_output(Path(args.symmetric_out), "symmetric map") \
         if args.symmetric_out else None
     rival_out = _check_output(Path(args.rival_out), "rival map") if args.rival_out else None
-    png = _check_output(Path(args.png), "PNG") if args.png else None
+    png = _check_picture(args.png)
     method = args.method or ("paper" if args.landmarks > 1 else "refine")
     if args.landmarks < 1:
         raise CLIError(f"--landmarks must be >= 1, got {args.landmarks}")
@@ -533,7 +547,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
 
 def _cmd_symmetry(args: argparse.Namespace) -> int:
     out = _check_output(Path(args.output), "map")
-    png = _check_output(Path(args.png), "PNG") if args.png else None
+    png = _check_picture(args.png)
     if args.fine is not None and not args.zoomout:
         raise CLIError("--fine refines the spectral self-map: drop --no-zoomout to use it")
     t_start = time.perf_counter()
@@ -866,7 +880,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_largest_component(m, "map (and --symmetric-out, --rival-out)")
     m.add_argument("--png", metavar="PATH", default=None,
                    help="also write a colour-transfer picture of the map (of the matched "
-                        "components with --largest-component)")
+                        "components with --largest-component); PNG, or PDF / SVG / JPEG by the "
+                        "extension")
     _add_refinement(m)
     for flag, dest, text in _CHOICE_SWITCHES:
         m.add_argument(flag, dest=dest, action="store_false", help=text)
@@ -903,7 +918,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(s)
     _add_largest_component(s, "self-map")
     s.add_argument("--png", metavar="PATH", default=None,
-                   help="also write a colour-transfer picture of the self-map")
+                   help="also write a colour-transfer picture of the self-map (PNG, or PDF / "
+                        "SVG / JPEG by the extension)")
     _add_refinement(s)
     s.set_defaults(func=_cmd_symmetry)
 

@@ -28,7 +28,28 @@ from ._files import atomic_write
 if TYPE_CHECKING:  # pragma: no cover
     from .mesh import Mesh
 
-__all__ = ["color_transfer", "coordinate_colors", "view_direction"]
+__all__ = ["color_transfer", "coordinate_colors", "view_direction", "picture_format"]
+
+#: Picture formats :func:`color_transfer` writes, chosen by the file's extension
+PICTURE_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg")
+
+
+def picture_format(path: str | os.PathLike[str]) -> str:
+    """The format of a picture file from its extension: one of :data:`PICTURE_FORMATS`
+    (``"png"`` for a name without one); a ``ValueError`` for any other.
+
+    Examples
+    --------
+    >>> picture_format("cat.PDF"), picture_format("cat")
+    ('pdf', 'png')
+    """
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if not suffix:
+        return "png"
+    if suffix not in PICTURE_FORMATS:
+        raise ValueError(f"{path}: unknown picture format '.{suffix}'; use .png, .pdf, .svg "
+                         "or .jpg")
+    return suffix
 
 
 def _arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +222,8 @@ def color_transfer(
     max_faces: int = 300_000,
     dpi: int = 110,
 ) -> Path:
-    """Write a PNG showing a vertex map as a colour transfer.
+    """Write a picture (PNG; PDF, SVG or JPEG by the extension) showing a vertex map as a
+    colour transfer.
 
     Left panel: the target coloured by RGB = its normalised x, y, z coordinates. Middle
     panel: the source, vertex ``x`` coloured like target vertex ``fmap[x]``. With ``errors``,
@@ -218,7 +240,8 @@ def color_transfer(
     fmap : array_like or torch.Tensor of int, shape (n,)
         Target vertex of every source vertex (0-based).
     path : str or os.PathLike
-        Output PNG. Written atomically (a temporary file in the same directory, then
+        Output picture, its format from the extension (:func:`picture_format`). Written
+        atomically (a temporary file in the same directory, then
         ``os.replace``): on failure no partial file is left behind.
     title : str, optional
         Figure title.
@@ -300,4 +323,5 @@ def color_transfer(
     fig.subplots_adjust(left=0.01, right=0.97 if err is not None else 0.99, bottom=0.01,
                         top=0.86 if title else 0.9, wspace=0.04)
 
-    return atomic_write(Path(path), lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))
+    fmt = picture_format(path)
+    return atomic_write(Path(path), lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi))
