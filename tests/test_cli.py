@@ -559,3 +559,39 @@ def test_cli_turns_an_inside_out_target_and_reports_it(tmp_path, capsys):
     assert r["repairs"]["target"] == {"flipped_faces": len(G), "turned_outward": True,
                                       "dropped_vertices": 0}
     assert r["repairs"]["source"]["turned_outward"] is False
+
+
+def test_check_reports_what_loading_finds(pair, tmp_path, capsys):
+    import json
+
+    from torchheat import Mesh
+
+    # torchheat check: matchable or why not, topology, repairs, warnings; status 1 if refused
+    src, _, _, _ = pair
+    V, F = generic_sphere(3)
+    holed = write_off(tmp_path / "holed.off", V, F[1:])  # one face removed: a hole
+    flipped = F.copy()
+    flipped[:7] = flipped[:7, ::-1]
+    turned = write_off(tmp_path / "turned.off", V, flipped)
+    two = write_off(tmp_path / "two.off", np.vstack([V, V + 5.0]),
+                    np.vstack([F, F + len(V)]))
+    assert main(["check", str(src), str(holed), str(turned)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == (f"{src}: ok: 642 vertices, 1280 faces, closed, genus 0; area "
+                      f"{Mesh(V, F).area():.4g}, diagonal {Mesh(V, F).bbox_diagonal():.4g}; "
+                      "repairs: none")
+    assert "1279 faces, 1 boundary loop (3 vertices), genus 0" in out[1]
+    assert "7 faces reversed" in out[2]
+    assert main(["check", str(two), "--json"]) == 1
+    rep = json.loads(capsys.readouterr().out)
+    assert rep[0]["ok"] is False and "2 connected components" in rep[0]["error"]
+    assert main(["check", str(two), "--largest-component", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)[0]
+    assert rep["ok"] and rep["repairs"]["dropped_vertices"] == 642 and rep["genus"] == 0
+    # a torus: genus 1, from the Euler characteristic
+    import trimesh
+
+    tor = trimesh.creation.torus(1.0, 0.4)
+    p = write_off(tmp_path / "torus.off", np.asarray(tor.vertices), np.asarray(tor.faces))
+    assert main(["check", str(p), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["genus"] == 1

@@ -39,7 +39,8 @@ from typing import Any
 from ._files import atomic_writes
 from .meshio import FORMATS_HELP
 
-__all__ = ["main", "run", "build_parser", "write_map", "map_format", "CLIError"]
+__all__ = ["main", "run", "build_parser", "write_map", "map_format", "inspect_mesh",
+           "CLIError"]
 
 PROG = "torchheat"
 DATA = Path(__file__).resolve().parent / "data"
@@ -545,6 +546,101 @@ def _cmd_match(args: argparse.Namespace) -> int:
     return 0
 
 
+def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) -> dict:
+    """What loading a mesh file finds, as :func:`torchheat.load_mesh` and ``match`` see it
+    (JSON-able): whether it can be matched, else why (``error``); its size, area, bounding-box
+    diagonal, boundary loops, Euler characteristic and genus, what loading repaired (faces
+    reversed, the surface turned outward, vertices dropped) and the warnings it gave.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    largest_component : bool
+        As ``--largest-component``: keep the largest connected component.
+
+    Returns
+    -------
+    dict
+        ``{"file", "ok", "error", "warnings"}`` and, when it loads, ``vertices, faces, area,
+        diagonal, boundary_loops`` (their vertex counts, longest first), ``euler, genus``
+        (None unless an orientable manifold), ``nonmanifold_edges`` and ``repairs``.
+
+    Examples
+    --------
+    >>> import os, tempfile, trimesh
+    >>> p = os.path.join(tempfile.mkdtemp(), "ball.off")
+    >>> _ = trimesh.creation.icosphere(3).export(p)
+    >>> r = inspect_mesh(p)
+    >>> r["ok"], r["vertices"], r["boundary_loops"], r["genus"]
+    (True, 642, [], 0)
+    """
+    import warnings as _w
+
+    from .mesh import MeshError, load_mesh
+    from .topology import boundary_loops
+
+    out: dict[str, Any] = {"file": str(path), "ok": False, "error": None}
+    with _w.catch_warnings(record=True) as caught:
+        _w.simplefilter("always")
+        try:
+            mesh = load_mesh(path, largest_component=largest_component)
+            from .eigen import DEFAULT_EIGENPAIRS
+            from .matching import _check_matchable
+
+            _check_matchable(mesh, DEFAULT_EIGENPAIRS, remedy="use a finer mesh (subdivide it)")
+        except MeshError as exc:
+            out["error"] = str(exc)
+            mesh = None
+    out["warnings"] = [str(w.message) for w in caught
+                       if type(w.message).__module__.startswith("torchheat")]
+    if mesh is None:
+        return out
+    V, F = mesh.numpy()
+    loops = sorted((len(lp) for lp in boundary_loops(F, mesh.n_vertices)), reverse=True)
+    _, counts = mesh._edges_cached()
+    nonmanifold = int((counts > 2).sum())
+    euler = mesh.n_vertices - int(counts.size) + mesh.n_faces
+    # the genus of an orientable manifold surface (none for other surfaces)
+    surface = getattr(mesh, "_oriented", False) and not nonmanifold
+    out.update(ok=True, vertices=mesh.n_vertices, faces=mesh.n_faces, area=mesh.area(),
+               diagonal=mesh.bbox_diagonal(), boundary_loops=loops, euler=euler,
+               genus=(2 - euler - len(loops)) // 2 if surface else None,
+               nonmanifold_edges=nonmanifold, repairs=_repairs(mesh))
+    return out
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    import json
+
+    reports = [inspect_mesh(p, args.largest_component) for p in args.meshes]
+    if args.json:
+        print(json.dumps(reports, indent=1))
+    for r in reports if not args.json else []:
+        if not r["ok"]:
+            print(f"{r['file']}: REFUSED: {r['error']}")
+        else:
+            loops = r["boundary_loops"]
+            shape = ("closed" if not loops else
+                     f"{len(loops)} boundary loop{'s' if len(loops) > 1 else ''} "
+                     f"({', '.join(map(str, loops[:5]))}{', ...' if len(loops) > 5 else ''} "
+                     "vertices)")
+            genus = (f"genus {r['genus']}" if r["genus"] is not None else
+                     f"{r['nonmanifold_edges']} non-manifold edges" if r["nonmanifold_edges"]
+                     else "not orientable")
+            rep = r["repairs"]
+            fixed = [f"{rep['flipped_faces']} faces reversed" if rep["flipped_faces"] else "",
+                     "turned outward" if rep["turned_outward"] else "",
+                     f"{rep['dropped_vertices']} vertices dropped (other components)"
+                     if rep["dropped_vertices"] else ""]
+            fixed = [x for x in fixed if x]
+            print(f"{r['file']}: ok: {r['vertices']} vertices, {r['faces']} faces, {shape}, "
+                  f"{genus}; area {r['area']:.4g}, diagonal {r['diagonal']:.4g}; repairs: "
+                  f"{', '.join(fixed) if fixed else 'none'}")
+        for w in r["warnings"]:
+            print(f"  warning: {w}")
+    return 0 if all(r["ok"] for r in reports) else 1
+
+
 def _cmd_symmetry(args: argparse.Namespace) -> int:
     out = _check_output(Path(args.output), "map")
     png = _check_picture(args.png)
@@ -922,6 +1018,23 @@ def build_parser() -> argparse.ArgumentParser:
                         "SVG / JPEG by the extension)")
     _add_refinement(s)
     s.set_defaults(func=_cmd_symmetry)
+
+    c = sub.add_parser(
+        "check", formatter_class=_Formatter,
+        help="what loading mesh files finds: matchable or why not, topology, repairs",
+        description="Load each MESH as 'match' would and report whether it can be matched "
+                    "(else the reason and what to do), its vertices, faces, boundary loops, "
+                    "genus, area and diagonal, what loading repaired (faces reversed, the "
+                    "surface turned outward, vertices dropped) and its warnings. Exit status "
+                    "1 if any file is refused.",
+        epilog="examples:\n  torchheat check scans/*.obj\n"
+               "  torchheat check scan.ply --largest-component --json",
+    )
+    c.add_argument("meshes", nargs="+", metavar="MESH", help="mesh files")
+    c.add_argument("--largest-component", action="store_true",
+                   help="keep the largest connected component, as match does with this flag")
+    c.add_argument("--json", action="store_true", help="print one JSON list instead")
+    c.set_defaults(func=_cmd_check)
 
     d = sub.add_parser(
         "demo", formatter_class=_Formatter,
