@@ -595,3 +595,13 @@ def test_check_reports_what_loading_finds(pair, tmp_path, capsys):
     p = write_off(tmp_path / "torus.off", np.asarray(tor.vertices), np.asarray(tor.faces))
     assert main(["check", str(p), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)[0]["genus"] == 1
+    # two holes touching at a vertex: pinched, no genus (the Euler count read genus -1 or 1
+    # on SHREC'16 pieces with such vertices)
+    a = 0
+    at = np.flatnonzero((F == F[a, 0]).any(axis=1))  # the faces around vertex F[a, 0]
+    b = next(int(f) for f in at if len(set(F[f]) & set(F[a])) == 1)
+    pinch = write_off(tmp_path / "pinch.off", V, np.delete(F, [a, b], axis=0))
+    assert main(["check", str(pinch)]) == 0
+    line = capsys.readouterr().out
+    assert "2 boundary loops" in line or "1 boundary loop" in line
+    assert "1 pinched vertex (holes touching: no genus)" in line

@@ -563,7 +563,8 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     dict
         ``{"file", "ok", "error", "warnings"}`` and, when it loads, ``vertices, faces, area,
         diagonal, boundary_loops`` (their vertex counts, longest first), ``euler, genus``
-        (None unless an orientable manifold), ``nonmanifold_edges`` and ``repairs``.
+        (None unless an orientable manifold), ``nonmanifold_edges``, ``pinched_vertices``
+        (boundary vertices where two holes touch) and ``repairs``.
 
     Examples
     --------
@@ -576,8 +577,10 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     """
     import warnings as _w
 
+    import numpy as np
+
     from .mesh import MeshError, load_mesh
-    from .topology import boundary_loops
+    from .topology import _boundary_halfedges, boundary_loops
 
     out: dict[str, Any] = {"file": str(path), "ok": False, "error": None}
     with _w.catch_warnings(record=True) as caught:
@@ -599,13 +602,18 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     loops = sorted((len(lp) for lp in boundary_loops(F, mesh.n_vertices)), reverse=True)
     _, counts = mesh._edges_cached()
     nonmanifold = int((counts > 2).sum())
+    # boundary vertices where two holes touch (two outgoing boundary edges): the surface is
+    # pinched there, and its loops and genus are not those of a manifold
+    pinched = int((np.bincount(_boundary_halfedges(F, mesh.n_vertices)[:, 0],
+                               minlength=mesh.n_vertices) > 1).sum())
     euler = mesh.n_vertices - int(counts.size) + mesh.n_faces
     # the genus of an orientable manifold surface (none for other surfaces)
-    surface = getattr(mesh, "_oriented", False) and not nonmanifold
+    surface = getattr(mesh, "_oriented", False) and not nonmanifold and not pinched
     out.update(ok=True, vertices=mesh.n_vertices, faces=mesh.n_faces, area=mesh.area(),
                diagonal=mesh.bbox_diagonal(), boundary_loops=loops, euler=euler,
                genus=(2 - euler - len(loops)) // 2 if surface else None,
-               nonmanifold_edges=nonmanifold, repairs=_repairs(mesh))
+               nonmanifold_edges=nonmanifold, pinched_vertices=pinched,
+               repairs=_repairs(mesh))
     return out
 
 
@@ -626,7 +634,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
                      "vertices)")
             genus = (f"genus {r['genus']}" if r["genus"] is not None else
                      f"{r['nonmanifold_edges']} non-manifold edges" if r["nonmanifold_edges"]
-                     else "not orientable")
+                     else f"{r['pinched_vertices']} pinched "
+                     f"{'vertex' if r['pinched_vertices'] == 1 else 'vertices'} (holes "
+                     "touching: no genus)" if r["pinched_vertices"] else "not orientable")
             rep = r["repairs"]
             fixed = [f"{rep['flipped_faces']} faces reversed" if rep["flipped_faces"] else "",
                      "turned outward" if rep["turned_outward"] else "",
