@@ -65,6 +65,7 @@ __all__ = [
     "MeshWarning",
     "ORDER_KEEPING_FORMATS",
     "SUPPORTED_FORMATS",
+    "COMPRESSED",
     "read_arrays",
     "triangulate_polygons",
 ]
@@ -75,11 +76,13 @@ ORDER_KEEPING_FORMATS: tuple[str, ...] = (".obj", ".off", ".ply")
 MERGED_FORMATS: tuple[str, ...] = (".stl", ".glb", ".gltf")
 #: File extensions understood by :func:`read_arrays` (case-insensitive).
 SUPPORTED_FORMATS: tuple[str, ...] = ORDER_KEEPING_FORMATS + MERGED_FORMATS
+#: Compressions read transparently for the order-keeping formats (``cat0.off.gz``)
+COMPRESSED: tuple[str, ...] = (".gz", ".bz2", ".xz")
 #: One line for a command's ``--help`` about formats.
 FORMATS_HELP = (
-    "Meshes: OFF, OBJ and PLY keep their vertex order (polygons are triangulated); STL, GLB "
-    "and glTF have duplicate vertices merged: one map line per merged vertex, in order of "
-    "first appearance."
+    "Meshes: OFF, OBJ, PLY (also .gz, .bz2, .xz) keep their vertex order; STL, GLB, glTF "
+    "have duplicate vertices merged: one map line per merged vertex, in order of first "
+    "appearance."
 )
 
 # a triangle of a triangulated polygon must have a signed area above this fraction of the
@@ -451,9 +454,22 @@ _BOM = b"\xef\xbb\xbf"
 
 
 def _file_bytes(path: Path) -> bytes:
-    """The file's bytes, without a leading UTF-8 byte-order mark (read as part of the first
-    token, it hid an OBJ file's first vertex and shifted every index)."""
+    """The file's bytes, decompressed when it ends in one of :data:`COMPRESSED`, without a
+    leading UTF-8 byte-order mark (read as part of the first token, it hid an OBJ file's first
+    vertex and shifted every index)."""
     raw = path.read_bytes()
+    kind = path.suffix.lower()
+    if kind in COMPRESSED:
+        import bz2
+        import gzip
+        import lzma
+
+        module = {".gz": gzip, ".bz2": bz2, ".xz": lzma}[kind]
+        try:
+            raw = module.decompress(raw)
+        except (OSError, EOFError, ValueError, lzma.LZMAError) as exc:
+            raise MeshError(f"{path}: not a valid {kind[1:]} file ({exc}); the download may be "
+                            "truncated, or the file not compressed: rename it") from None
     return raw[len(_BOM):] if raw.startswith(_BOM) else raw
 
 
@@ -1082,7 +1098,8 @@ def read_arrays(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     ----------
     path : str or os.PathLike
         ``.off``, ``.obj``, ``.ply``, ``.stl``, ``.glb`` or ``.gltf`` file (the extension
-        decides, case-insensitive).
+        decides, case-insensitive); OFF, OBJ and PLY also compressed (``.off.gz``,
+        ``.ply.bz2``, ``.obj.xz``).
 
     Returns
     -------
@@ -1112,11 +1129,20 @@ def read_arrays(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     if p.is_dir():
         raise MeshError(f"{path}: is a directory, not a mesh file; pass the path of a file")
     ext = p.suffix.lower()
-    if ext not in SUPPORTED_FORMATS:
+    if ext in COMPRESSED:  # cat0.off.gz: the format is the extension before
+        inner = Path(p.stem).suffix.lower()
+        if inner not in ORDER_KEEPING_FORMATS:
+            raise MeshError(
+                f"{path}: a compressed {inner or 'file without a mesh extension'} is not read; "
+                f"compressed {', '.join(ORDER_KEEPING_FORMATS)} files are (e.g. mesh.off.gz), "
+                "otherwise decompress it first"
+            )
+        ext = inner
+    elif ext not in SUPPORTED_FORMATS:
         raise MeshError(
             f"{path}: unsupported mesh format {p.suffix or '(no extension)'!r}; supported "
-            f"formats are {', '.join(SUPPORTED_FORMATS)} (convert it, e.g. with trimesh or "
-            "MeshLab)"
+            f"formats are {', '.join(SUPPORTED_FORMATS)}, OFF, OBJ and PLY also compressed "
+            f"({', '.join(COMPRESSED)}) (convert it, e.g. with trimesh or MeshLab)"
         )
     try:
         if ext == ".obj":
