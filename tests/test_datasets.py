@@ -460,3 +460,20 @@ def test_ordered_pairs_and_fill_cache(tmp_path):
     assert not shapes.is_cached(0)
     with pytest.warns(UserWarning, match="unusable cache entry"):
         assert [d["computed"] for d in shapes.fill_cache()] == [True, False, False]
+
+
+def test_folder_lists_compressed_meshes_by_their_inner_name(spot_files, tmp_path):
+    # spot.obj.gz is read as spot.obj and named spot (its stem was "spot.obj", and the folder
+    # left compressed files out)
+    import gzip
+
+    a, _ = spot_files
+    d = tmp_path / "packed"
+    d.mkdir()
+    (d / "spot.obj.gz").write_bytes(gzip.compress(a.read_bytes()))
+    shutil.copyfile(a, d / "cow2.obj")
+    shapes = folder(d)
+    assert shapes.names == ["cow2", "spot"] and shapes.classes == ["cow", "spot"]
+    V1, _ = shapes[1].mesh.numpy()
+    V0, _ = shapes[0].mesh.numpy()
+    assert np.array_equal(V0, V1)  # the same mesh, read through gzip

@@ -97,7 +97,8 @@ def _within_class_pairs(shapes: ShapeCollection, mode: str) -> list[tuple[int, i
 
 def folder(
     path: PathLike,
-    pattern: str = "*.off|*.ply|*.obj|*.stl|*.glb|*.gltf",
+    pattern: str = ("*.off|*.ply|*.obj|*.stl|*.glb|*.gltf|*.off.gz|*.ply.gz|*.obj.gz|*.off.bz2|"
+                    "*.ply.bz2|*.obj.bz2|*.off.xz|*.ply.xz|*.obj.xz"),
     classes: Sequence[str] | None = None,
     **kw: Any,
 ) -> ShapeCollection:
@@ -108,7 +109,8 @@ def folder(
     path : path-like
         The folder (not searched recursively).
     pattern : str
-        Glob patterns separated by ``|``.
+        Glob patterns separated by ``|`` (case-insensitive; default: every format
+        :func:`torchheat.load_mesh` reads, OFF, OBJ and PLY also compressed).
     classes : sequence of str, optional
         Class per file; default: stem without trailing digits.
     **kw

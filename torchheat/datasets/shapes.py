@@ -26,6 +26,7 @@ from .._arrays import to_numpy
 from .._files import atomic_write
 from ..heat import HeatKernel
 from ..mesh import Mesh, load_mesh
+from ..meshio import COMPRESSED
 from .cache import (
     _ARRAY_KEYS,
     _SCALAR_KEYS,
@@ -157,6 +158,13 @@ class Shape:
         return HeatKernel(self.mesh, **params)
 
 
+def _shape_name(path: Path) -> str:
+    """A shape's name from its file: the stem, and for a compressed file (``cat0.off.gz``)
+    the stem of the file inside (``cat0``)."""
+    p = Path(path)
+    return Path(p.stem).stem if p.suffix.lower() in COMPRESSED else p.stem
+
+
 class ShapeCollection(Dataset):
     """A dataset of mesh files with an optional, disk-cached :class:`Preprocess`.
 
@@ -196,7 +204,8 @@ class ShapeCollection(Dataset):
         if isinstance(paths, str | os.PathLike):
             paths = [paths]
         self.paths = [Path(p) for p in paths]
-        self.names = [p.stem for p in self.paths] if names is None else [str(n) for n in names]
+        self.names = ([_shape_name(p) for p in self.paths] if names is None
+                      else [str(n) for n in names])
         if classes is None:
             classes = [_class_from_stem(n) for n in self.names]
         self.classes = [str(c) for c in classes]
