@@ -936,6 +936,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n"
                "  torchheat match cat0.off cat1.off -o cat0_cat1.txt --png cat.png\n"
                "  torchheat symmetry cat0.off -o cat0_sym.txt\n"
+               "  torchheat check scans/*.obj\n"
                "  torchheat demo --out out\n"
                "  torchheat evaluate configs/tosca5k.yaml --workers 2\n"
                "  torchheat evaluate configs/tosca5k.yaml --dask local:2\n"
