@@ -582,6 +582,7 @@ def test_check_reports_what_loading_finds(pair, tmp_path, capsys):
                       "repairs: none")
     assert "1279 faces, 1 boundary loop (3 vertices), genus 0" in out[1]
     assert "7 faces reversed" in out[2]
+    assert out[3] == "3 files: 3 can be matched, 0 refused, 0 with warnings"
     assert main(["check", str(two), "--json"]) == 1
     rep = json.loads(capsys.readouterr().out)
     assert rep[0]["ok"] is False and "2 connected components" in rep[0]["error"]

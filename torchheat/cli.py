@@ -648,7 +648,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
                   f"{', '.join(fixed) if fixed else 'none'}")
         for w in r["warnings"]:
             print(f"  warning: {w}")
-    return 0 if all(r["ok"] for r in reports) else 1
+    refused = sum(not r["ok"] for r in reports)
+    if len(reports) > 1 and not args.json:
+        print(f"{len(reports)} files: {len(reports) - refused} can be matched, {refused} "
+              f"refused, {sum(bool(r['warnings']) for r in reports)} with warnings")
+    return 0 if not refused else 1
 
 
 def _cmd_symmetry(args: argparse.Namespace) -> int:
