@@ -245,6 +245,15 @@ def test_summarize_run_per_class(tmp_path):
     assert float(rows[("pair", "dog0-dog1")]["time_match_s"]) == pytest.approx(6.0)
     md = (tmp_path / "summary.md").read_text()
     assert "## Per class" in md and "| cat | 2 |" in md
+    # where it was written: the BLAS build changes maps in their last bits (23rd session)
+    import numpy
+    import scipy
+
+    import torchheat
+
+    last = md.strip().splitlines()[-1]
+    assert last.startswith(f"Written by torchheat {torchheat.__version__}")
+    assert f"numpy {numpy.__version__}, scipy {scipy.__version__}" in last and "UTC" in last
     assert (tmp_path / "curves.png").stat().st_size > 0
     assert not list(tmp_path.glob(".*"))  # no temporary files left
 

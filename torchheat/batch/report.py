@@ -166,7 +166,9 @@ def summarize_run(
     Notes
     -----
     Per-class and overall figures are means over pairs of the per-pair figures. Percentages
-    are 0-100. The CSV holds one row per level (``overall``, ``class``, ``pair``). All files
+    are 0-100. ``summary.md`` ends with where it was written (versions, git commit, BLAS, CPU:
+    :func:`torchheat._provenance.provenance`; maps depend on the BLAS build in their last
+    bits). The CSV holds one row per level (``overall``, ``class``, ``pair``). All files
     are written atomically (temporary file + :func:`os.replace`).
 
     Examples
@@ -182,7 +184,11 @@ def summarize_run(
         raise ValueError("no results to summarize")
     rows = _table_rows(results)
     title = (config or {}).get("name") or out.name
-    _write_text(out / "summary.md", _markdown(rows, f"{title}: {len(results)} pairs"))
+    from .._provenance import provenance_line
+
+    _write_text(out / "summary.md", _markdown(rows, f"{title}: {len(results)} pairs") + "\n"
+                + provenance_line() + " (A resumed run keeps the records of the runs before "
+                "it.)\n")
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(_COLUMNS), lineterminator="\n")
     w.writeheader()
