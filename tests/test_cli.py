@@ -559,6 +559,10 @@ def test_cli_turns_an_inside_out_target_and_reports_it(tmp_path, capsys):
     assert r["repairs"]["target"] == {"flipped_faces": len(G), "turned_outward": True,
                                       "dropped_vertices": 0}
     assert r["repairs"]["source"]["turned_outward"] is False
+    import torchheat  # the report says where it was computed
+
+    assert r["provenance"]["torchheat"] == torchheat.__version__ == r["version"]
+    assert r["provenance"]["numpy"] == np.__version__ and r["provenance"]["cpus"] >= 1
 
 
 def test_check_reports_what_loading_finds(pair, tmp_path, capsys):

@@ -441,7 +441,10 @@ def _write_report(path: Path, corr: Any, source: str, target: str,
     import json
     import re
 
-    rep = {"source": str(source), "target": str(target), **corr.report()}
+    from ._provenance import provenance
+
+    rep = {"source": str(source), "target": str(target), **corr.report(),
+           "provenance": provenance()}  # versions, git commit, BLAS, CPU, time
     if meshes is not None:  # what loading repaired in each file
         rep["repairs"] = {"source": _repairs(meshes[0]), "target": _repairs(meshes[1])}
     svm, tvm = corr.source_vertex_map, corr.target_vertex_map  # file indices, as the map
@@ -907,8 +910,9 @@ def _add_refinement(p: argparse.ArgumentParser) -> None:
                         "vertices)")
     p.add_argument("--report", metavar="PATH.json", default=None,
                    help="also write a JSON report: files, vertex counts, method, landmarks, "
-                        "orientation, quality (0..1), suspect, timings, and what loading "
-                        "repaired in each file (faces reversed, dropped vertices)")
+                        "orientation, quality (0..1), suspect, timings, what loading "
+                        "repaired in each file (faces reversed, dropped vertices), the options "
+                        "given and where it ran (versions, git commit, BLAS, CPU)")
 
 
 def _add_largest_component(p: argparse.ArgumentParser, what: str) -> None:
