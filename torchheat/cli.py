@@ -131,7 +131,7 @@ def _check_picture(path: str | None) -> Path | None:
     return _check_output(Path(path), "picture")
 
 
-def write_map(path: str | os.PathLike[str], fmap: Any, fmt: str | None = None) -> None:
+def write_map(path: str | os.PathLike[str], fmap: Any) -> None:
     """Write a vertex map in source vertex order: one 0-based target index per line, or a
     NumPy ``.npy`` file of int64 (``np.load`` reads it back).
 
@@ -141,9 +141,9 @@ def write_map(path: str | os.PathLike[str], fmap: Any, fmt: str | None = None) -
         Output file (overwritten; not atomic by itself, the CLI writes to a temporary file
         first).
     fmap : array_like or torch.Tensor of int, shape (n,)
-    fmt : {"txt", "npy"}, optional
-        Default: ``"npy"`` when ``path`` ends in ``.npy`` (any case), else ``"txt"``. (A
-        temporary file is written with the format of the name it will get.)
+
+    The format comes from ``path``'s extension (:func:`map_format`; the CLI's temporary files
+    keep the extension of the name they will get).
 
     Examples
     --------
@@ -162,7 +162,7 @@ def write_map(path: str | os.PathLike[str], fmap: Any, fmt: str | None = None) -
     from ._arrays import to_numpy
 
     f = to_numpy(fmap, dtype=np.int64).reshape(-1)
-    if (fmt or map_format(path)) == "npy":
+    if map_format(path) == "npy":
         with open(path, "wb") as fh:  # a handle: np.save would append .npy to a bare name
             np.save(fh, f)
         return
@@ -516,17 +516,15 @@ def _cmd_match(args: argparse.Namespace) -> int:
               file=sys.stderr)
     with atomic_writes() as outs:
         # the files' numbering
-        outs.stage(out, lambda p: write_map(p, corr.full_map(), map_format(out)))
+        outs.stage(out, lambda p: write_map(p, corr.full_map()))
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
                        lambda p: _write_report(p, corr, args.source, args.target,
                                                (source, target)))
         if sym_out is not None and corr.symmetric_map is not None:
-            outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map(),
-                                                   map_format(sym_out)))
+            outs.stage(sym_out, lambda p: write_map(p, corr.full_symmetric_map()))
         if rival_out is not None and corr.rival_map is not None:
-            outs.stage(rival_out, lambda p: write_map(p, corr.full_rival_map(),
-                                                     map_format(rival_out)))
+            outs.stage(rival_out, lambda p: write_map(p, corr.full_rival_map()))
         if png is not None:
             from .viz import color_transfer
 
@@ -580,10 +578,8 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     """
     import warnings as _w
 
-    import numpy as np
-
     from .mesh import MeshError, load_mesh
-    from .topology import _boundary_halfedges, boundary_loops
+    from .topology import boundary_loops, pinched_vertices
 
     out: dict[str, Any] = {"file": str(path), "ok": False, "error": None}
     with _w.catch_warnings(record=True) as caught:
@@ -605,10 +601,7 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     loops = sorted((len(lp) for lp in boundary_loops(F, mesh.n_vertices)), reverse=True)
     _, counts = mesh._edges_cached()
     nonmanifold = int((counts > 2).sum())
-    # boundary vertices where two holes touch (two outgoing boundary edges): the surface is
-    # pinched there, and its loops and genus are not those of a manifold
-    pinched = int((np.bincount(_boundary_halfedges(F, mesh.n_vertices)[:, 0],
-                               minlength=mesh.n_vertices) > 1).sum())
+    pinched = int(pinched_vertices(F, mesh.n_vertices).size)  # no manifold there
     euler = mesh.n_vertices - int(counts.size) + mesh.n_faces
     # the genus of an orientable manifold surface (none for other surfaces)
     surface = getattr(mesh, "_oriented", False) and not nonmanifold and not pinched
@@ -620,39 +613,47 @@ def inspect_mesh(path: str | os.PathLike[str], largest_component: bool = False) 
     return out
 
 
+def _check_line(r: dict) -> str:
+    """One :func:`inspect_mesh` report as the line ``torchheat check`` prints."""
+    from .meshio import _plural
+
+    if not r["ok"]:
+        return f"{r['file']}: REFUSED: {r['error']}"
+    loops = r["boundary_loops"]
+    shape = "closed" if not loops else (
+        f"{_plural(len(loops), 'boundary loop')} ({', '.join(map(str, loops[:5]))}"
+        f"{', ...' if len(loops) > 5 else ''} vertices)")
+    if r["genus"] is not None:
+        genus = f"genus {r['genus']}"
+    elif r["nonmanifold_edges"]:
+        genus = _plural(r["nonmanifold_edges"], "non-manifold edge")
+    elif r["pinched_vertices"]:
+        genus = f"{_plural(r['pinched_vertices'], 'pinched vertex')} (holes touching: no genus)"
+    else:
+        genus = "not orientable"
+    rep = r["repairs"]
+    fixed = [text for n, text in ((rep["flipped_faces"], f"{rep['flipped_faces']} faces reversed"),
+                                  (rep["turned_outward"], "turned outward"),
+                                  (rep["dropped_vertices"], f"{rep['dropped_vertices']} vertices "
+                                   "dropped (other components)")) if n]
+    return (f"{r['file']}: ok: {r['vertices']} vertices, {r['faces']} faces, {shape}, {genus}; "
+            f"area {r['area']:.4g}, diagonal {r['diagonal']:.4g}; repairs: "
+            f"{', '.join(fixed) if fixed else 'none'}")
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
     import json
 
     reports = [inspect_mesh(p, args.largest_component) for p in args.meshes]
+    refused = sum(not r["ok"] for r in reports)
     if args.json:
         print(json.dumps(reports, indent=1))
-    for r in reports if not args.json else []:
-        if not r["ok"]:
-            print(f"{r['file']}: REFUSED: {r['error']}")
-        else:
-            loops = r["boundary_loops"]
-            shape = ("closed" if not loops else
-                     f"{len(loops)} boundary loop{'s' if len(loops) > 1 else ''} "
-                     f"({', '.join(map(str, loops[:5]))}{', ...' if len(loops) > 5 else ''} "
-                     "vertices)")
-            genus = (f"genus {r['genus']}" if r["genus"] is not None else
-                     f"{r['nonmanifold_edges']} non-manifold edges" if r["nonmanifold_edges"]
-                     else f"{r['pinched_vertices']} pinched "
-                     f"{'vertex' if r['pinched_vertices'] == 1 else 'vertices'} (holes "
-                     "touching: no genus)" if r["pinched_vertices"] else "not orientable")
-            rep = r["repairs"]
-            fixed = [f"{rep['flipped_faces']} faces reversed" if rep["flipped_faces"] else "",
-                     "turned outward" if rep["turned_outward"] else "",
-                     f"{rep['dropped_vertices']} vertices dropped (other components)"
-                     if rep["dropped_vertices"] else ""]
-            fixed = [x for x in fixed if x]
-            print(f"{r['file']}: ok: {r['vertices']} vertices, {r['faces']} faces, {shape}, "
-                  f"{genus}; area {r['area']:.4g}, diagonal {r['diagonal']:.4g}; repairs: "
-                  f"{', '.join(fixed) if fixed else 'none'}")
+        return 0 if not refused else 1
+    for r in reports:
+        print(_check_line(r))
         for w in r["warnings"]:
             print(f"  warning: {w}")
-    refused = sum(not r["ok"] for r in reports)
-    if len(reports) > 1 and not args.json:
+    if len(reports) > 1:
         print(f"{len(reports)} files: {len(reports) - refused} can be matched, {refused} "
               f"refused, {sum(bool(r['warnings']) for r in reports)} with warnings")
     return 0 if not refused else 1
@@ -682,7 +683,7 @@ def _cmd_symmetry(args: argparse.Namespace) -> int:
               "map is the best direct self-map (close to the identity)", file=sys.stderr)
     with atomic_writes() as outs:
         # the file's numbering
-        outs.stage(out, lambda p: write_map(p, corr.full_map(), map_format(out)))
+        outs.stage(out, lambda p: write_map(p, corr.full_map()))
         if args.report:
             outs.stage(_check_output(Path(args.report), "report"),
                        lambda p: _write_report(p, corr, args.mesh, args.mesh, (mesh, mesh)))
@@ -751,7 +752,7 @@ def _cmd_demo_partial(args: argparse.Namespace) -> int:
     dist = np.linalg.norm(W[f] - W[truth], axis=1) / diag
     within = float(np.mean(dist <= 0.02))
     with atomic_writes() as outs:
-        outs.stage(map_path, lambda p: write_map(p, f, map_format(map_path)))
+        outs.stage(map_path, lambda p: write_map(p, f))
         from .viz import color_transfer
 
         outs.stage(png_path, lambda p: color_transfer(
@@ -812,7 +813,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                          "the direct map, i.e. the direct map is the left/right mirror; "
                          "intrinsic descriptors cannot tell a map from its mirror image")
     with atomic_writes() as outs:
-        outs.stage(map_path, lambda p: write_map(p, f, map_format(map_path)))
+        outs.stage(map_path, lambda p: write_map(p, f))
         from .viz import color_transfer
 
         outs.stage(png_path, lambda p: color_transfer(

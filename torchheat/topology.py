@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from .geometry import face_areas
 
 __all__ = ["edge_keys", "adjacency_from_keys", "components", "largest_component", "restrict_faces",
-           "orient_faces", "orient_outward", "boundary_loops", "fill_holes"]
+           "orient_faces", "orient_outward", "boundary_loops", "pinched_vertices", "fill_holes"]
 
 
 def edge_keys(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -314,6 +314,31 @@ def boundary_loops(F: np.ndarray, n: int) -> list[np.ndarray]:
             e = free[0]
         loops.append(np.asarray(loop, dtype=np.int64))
     return loops
+
+
+def pinched_vertices(F: np.ndarray, n: int) -> np.ndarray:
+    """Boundary vertices where holes touch: two or more boundary edges leave them (in a
+    consistently oriented mesh), so the surface is pinched there and its boundary loops and
+    genus are not those of a manifold.
+
+    Parameters
+    ----------
+    F : numpy.ndarray of int, shape (m, 3)
+    n : int
+
+    Returns
+    -------
+    numpy.ndarray of int64
+        The vertices, ascending.
+
+    Examples
+    --------
+    >>> F = np.array([[0, 1, 2], [0, 3, 4]])  # two triangles sharing vertex 0 only
+    >>> pinched_vertices(F, 5).tolist()
+    [0]
+    """
+    bnd = _boundary_halfedges(np.asarray(F), n)
+    return np.flatnonzero(np.bincount(bnd[:, 0], minlength=n) > 1).astype(np.int64)
 
 
 def _simple_loops(loop: np.ndarray) -> list[np.ndarray]:

@@ -18,15 +18,10 @@ from .._arrays import to_numpy
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh
+from ..operators import check_kind
 
 #: Bumped whenever the layout or meaning of a cache entry changes (old entries are ignored).
 CACHE_VERSION = 1
-
-
-_KINDS = ("cotan", "fem", "robust")
-
-
-_BOUNDARIES = ("neumann", "dirichlet")
 
 
 _ARRAY_KEYS = ("eigenvalues", "eigenvectors", "hks", "mass", "times")
@@ -121,10 +116,7 @@ class Preprocess:
         if isinstance(self.k, bool) or not float(self.k).is_integer() or int(self.k) < 1:
             raise ValueError(f"k must be an integer >= 1, got {self.k!r}")  # 5.5 was 5
         object.__setattr__(self, "k", int(self.k))
-        if self.kind not in _KINDS:
-            raise ValueError(f"unknown kind {self.kind!r}; use one of {_KINDS}")
-        if self.boundary not in _BOUNDARIES:
-            raise ValueError(f"unknown boundary {self.boundary!r}; use one of {_BOUNDARIES}")
+        check_kind(self.kind, self.boundary)  # the Laplacian's own check
 
     def params(self) -> dict:
         """The parameters as a JSON-serialisable dict."""

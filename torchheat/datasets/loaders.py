@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from ..meshio import COMPRESSED, ORDER_KEEPING_FORMATS, SUPPORTED_FORMATS
 from .cache import PathLike
 from .ground_truth import BarycentricGT, VtsGT, VtsSymmetryGT
 from .pairs import PairCollection
@@ -95,10 +96,14 @@ def _within_class_pairs(shapes: ShapeCollection, mode: str) -> list[tuple[int, i
     return out
 
 
+#: Every file :func:`torchheat.load_mesh` reads (OFF, OBJ and PLY also compressed), as globs
+_MESH_FILES = "|".join([f"*{e}" for e in SUPPORTED_FORMATS]
+                       + [f"*{e}{c}" for e in ORDER_KEEPING_FORMATS for c in COMPRESSED])
+
+
 def folder(
     path: PathLike,
-    pattern: str = ("*.off|*.ply|*.obj|*.stl|*.glb|*.gltf|*.off.gz|*.ply.gz|*.obj.gz|*.off.bz2|"
-                    "*.ply.bz2|*.obj.bz2|*.off.xz|*.ply.xz|*.obj.xz"),
+    pattern: str = _MESH_FILES,
     classes: Sequence[str] | None = None,
     **kw: Any,
 ) -> ShapeCollection:
