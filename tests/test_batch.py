@@ -66,6 +66,12 @@ def test_run_writes_lines_and_summary_and_rerun_does_nothing(reference, monkeypa
     assert len(r["curve"]) == len(r["curve_thresholds"]) == len(batch.CURVE_THRESHOLDS)
     assert np.all(np.diff(r["curve"]) >= 0) and r["curve"][-1] == r["direct"]["under_0.25"]
     assert r["time_match"] > 0 and r["time_eval"] > 0 and r["landmark"] is not None
+    # TOSCA's .vts rows contradict their neighbours' on well under 1 % of a cat pair's rows
+    for rec in lines:
+        assert 0.0 <= rec["gt_contradicted"] < 0.01
+        assert set(rec["consistent"]) == set(rec["direct"])
+        if rec["gt_contradicted"] == 0.0:
+            assert rec["consistent"] == rec["direct"]
 
     calls = []
     monkeypatch.setattr(batch.task, "evaluate_pair", lambda *a, **k: calls.append(a))
@@ -256,6 +262,24 @@ def test_summarize_run_per_class(tmp_path):
     assert f"numpy {numpy.__version__}, scipy {scipy.__version__}" in last and "UTC" in last
     assert (tmp_path / "curves.png").stat().st_size > 0
     assert not list(tmp_path.glob(".*"))  # no temporary files left
+    # records without contradicted ground truth (or written before the check): no such columns
+    assert "GT contradicted %" not in md and rows[("class", "cat")]["gt_contradicted_pct"] == ""
+
+
+def test_summary_counts_contradicted_ground_truth(tmp_path):
+    recs = [_rec("vic0-vic1", "victoria", 0.05, 0.90, None, 2.0),
+            _rec("vic0-vic2", "victoria", 0.02, 1.00, None, 2.0)]
+    recs[0]["gt_contradicted"], recs[0]["consistent"] = 0.04, {
+        **recs[0]["direct"], "mean": 0.03, "under_0.25": 0.98}
+    recs[1]["gt_contradicted"], recs[1]["consistent"] = 0.0, recs[1]["direct"]
+    overall = batch.summarize_run(recs, tmp_path)
+    assert overall["gt_contradicted_pct"] == pytest.approx(2.0)
+    assert overall["consistent_pct_under_0.25"] == pytest.approx(99.0)
+    assert overall["consistent_mean_error"] == pytest.approx(0.025)
+    assert overall["pct_under_0.25"] == pytest.approx(95.0)  # every row still counts there
+    md = (tmp_path / "summary.md").read_text()
+    assert "GT contradicted %" in md and "| all | 2 | 0.0350 | 95.0 |" in md
+    assert md.count("| 2.00 | 99.0 | 0.0250 |") == 2  # overall and the class
 
 
 def test_bad_config_gives_one_line_error(tmp_path, capsys):

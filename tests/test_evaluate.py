@@ -7,11 +7,13 @@ import pytest
 import torch
 
 from torchheat.evaluate import (
+    GT_DISAGREEMENT,
     GeodesicSolver,
     cumulative_curve,
     flip_aware_errors,
     geodesic_distortion,
     geodesic_errors,
+    gt_disagreement,
     mesh_area,
     plot_cumulative,
     summarize,
@@ -241,6 +243,46 @@ def test_flip_aware(grid, heat):
     assert np.mean(err > 0) > 0.45
     with pytest.raises(ValueError, match="same length"):
         flip_aware_errors(grid, ident, ident, mir[:-1], solver=heat)
+
+
+# ------------------------------------------------------------------ ground-truth consistency
+def test_gt_disagreement_identity_is_the_edge_length(grid, exact):
+    # identity ground truth on the flat grid: each row's image lies one edge from its nearest
+    # neighbours' images; an interior vertex has 4 neighbours at H and 2 at H sqrt(2) -> median H
+    n = K * K
+    d = gt_disagreement(grid, grid, np.arange(n), np.arange(n), solver=exact)
+    V, _ = grid
+    inner = (V[:, 0] > H / 2) & (V[:, 0] < 1 - H / 2) & (V[:, 1] > H / 2) & (V[:, 1] < 1 - H / 2)
+    assert np.allclose(d[inner], H, atol=1e-9)
+    assert not np.isnan(d).any() and d.max() <= np.sqrt(2) * H + 1e-9
+    assert not (d > GT_DISAGREEMENT).any()
+
+
+def test_gt_disagreement_finds_corrupted_rows(grid, heat):
+    n = K * K
+    V, _ = grid
+    idx = np.arange(K * K).reshape(K, K)
+    src, tgt = np.arange(n), np.arange(n).copy()
+    bad = np.array([idx[5, 5], idx[20, 12], idx[25, 26]])  # rows sent to the far corner
+    tgt[bad] = idx[0, -1]
+    # a second row of one vertex, far from the first: the duplicate contradicts, not the first
+    x = idx[10, 18]
+    src2, tgt2 = np.r_[src, x], np.r_[tgt, idx[28, 2]]
+    d = gt_disagreement(grid, grid, src2, tgt2, solver=heat)
+    flagged = np.flatnonzero(d > GT_DISAGREEMENT)
+    assert sorted(flagged.tolist()) == sorted([*bad.tolist(), n])
+    # how far: the corrupted row's image from its neighbours' images (Euclidean on the plane)
+    far = np.linalg.norm(V[idx[0, -1]] - V[bad[0]])
+    assert d[bad[0]] == pytest.approx(far, abs=0.06)  # heat method (grid max error 0.055)
+    # rows: only those checked, every row still a neighbour; unlisted neighbours give NaN
+    sub = gt_disagreement(grid, grid, src2, tgt2, rows=[bad[1], 0], solver=heat)
+    assert sub[0] == pytest.approx(d[bad[1]]) and sub[1] == pytest.approx(d[0])
+    lone = gt_disagreement(grid, grid, [idx[4, 4], idx[20, 20]], [0, 1], solver=heat)
+    assert np.isnan(lone).all()  # no neighbour of either vertex has a row
+    with pytest.raises(ValueError, match="same length"):
+        gt_disagreement(grid, grid, src, tgt[:-1], solver=heat)
+    with pytest.raises(ValueError, match="out of range"):
+        gt_disagreement(grid, grid, src, tgt + 1, solver=heat)
 
 
 # ------------------------------------------------------------------ distortion

@@ -24,7 +24,8 @@ from .results import _write_text
 # --------------------------------------------------------------------------------------------
 _COLUMNS = ("level", "name", "pairs", "mean_error", "pct_under_0.25", "pct_under_0.1",
             "pct_under_0.05", "flip_pct_under_0.25", "flip_mean_error", "symmetric_choices",
-            "time_match_s", "time_eval_s", "time_per_pair_s", "distortion")
+            "time_match_s", "time_eval_s", "time_per_pair_s", "distortion",
+            "gt_contradicted_pct", "consistent_pct_under_0.25", "consistent_mean_error")
 
 
 def _nanmean(vals: Sequence[float | None]) -> float | None:
@@ -55,6 +56,12 @@ def _row(level: str, name: str, recs: Sequence[Mapping[str, Any]]) -> dict[str, 
         "time_per_pair_s": _nanmean([r.get("time_prepare", 0.0) + r["time_match"]
                                      + r["time_eval"] for r in recs]),
         "distortion": _nanmean([r.get("distortion") for r in recs]),
+        # rows whose ground truth contradicts its neighbours' (evaluate.gt_disagreement), and
+        # the direct figures on the others (records written before it have neither)
+        "gt_contradicted_pct": _nanmean([None if r.get("gt_contradicted") is None
+                                         else 100 * r["gt_contradicted"] for r in recs]),
+        "consistent_pct_under_0.25": d("under_0.25", 100, "consistent"),
+        "consistent_mean_error": d("mean", 1.0, "consistent"),
         "quality": _nanmean([r.get("quality") for r in recs]),
         "suspect": sum(bool(r.get("suspect")) for r in recs)
         if any(r.get("suspect") is not None for r in recs) else None,
@@ -103,6 +110,11 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
     if any(r.get("first_stage") is not None for r in rows):
         head.append("1st stage")
         keys.append("first_stage")
+    if any(r["gt_contradicted_pct"] for r in rows):  # only where the ground truth has such rows
+        head += ["GT contradicted %", "consistent % <0.25", "consistent mean err"]
+        keys += ["gt_contradicted_pct", "consistent_pct_under_0.25", "consistent_mean_error"]
+        digits.update({"gt_contradicted_pct": 2, "consistent_pct_under_0.25": 1,
+                       "consistent_mean_error": 4})
     if any(r["distortion"] is not None for r in rows):
         head.append("distortion")
         keys.append("distortion")
@@ -115,7 +127,11 @@ def _markdown(rows: list[dict[str, Any]], title: str) -> str:
              "(0..1, no ground truth; torchheat.matching.quality), suspect: maps below 0.25, "
              "ambiguous: maps whose best rival (a different whole map) scored within 0.15, "
              "rival right: ambiguous maps whose rival map is right (>= 90 % under 0.25); "
-             "1st stage: maps kept from the first stage of the staged search.",
+             "1st stage: maps kept from the first stage of the staged search. GT "
+             "contradicted (where shown): evaluated rows whose ground-truth image lies over "
+             "0.1 sqrt(area) from its neighbours' images (torchheat.evaluate.gt_disagreement; "
+             "no continuous map is right on both), and the direct figures on the other rows; "
+             "the columns before them count every row.",
              ""]
     for level, label in (("overall", "Overall"), ("class", "Per class"), ("pair", "Per pair")):
         sel = [r for r in rows if r["level"] == level]

@@ -96,7 +96,10 @@ tosca_remeshed_5k_symmetry`).
         ``eigensolves``: those run by this call (0 when the shapes' eigenpairs came cached
         or were memoised in this process);
         ``direct``: :func:`~torchheat.evaluate.summarize` of the errors against the direct
-        gt (``mean, under_0.25, under_0.1, under_0.05, exact``); ``flip``: the same for the
+        gt (``mean, under_0.25, under_0.1, under_0.05, exact``); ``gt_contradicted``: the
+        share of evaluated rows whose ground truth contradicts its neighbours'
+        (:func:`~torchheat.evaluate.gt_disagreement` above 0.1) and ``consistent``: the
+        ``direct`` summary on the other rows (``None`` if none); ``flip``: the same for the
         flip-aware error (direct or symmetric gt, chosen for the map as a whole) or ``None``
         without symmetric gt; ``flip_choice``: ``"direct"``, ``"symmetric"`` or ``None``;
         ``curve`` / ``flip_curve``: fractions at :data:`CURVE_THRESHOLDS`;
@@ -111,7 +114,12 @@ tosca_remeshed_5k_symmetry`).
     >>> sorted(r["direct"])  # doctest: +SKIP
     ['exact', 'mean', 'under_0.05', 'under_0.1', 'under_0.25']
     """
-    from ..evaluate import cumulative_curve, geodesic_distortion
+    from ..evaluate import (
+        GT_DISAGREEMENT,
+        _gt_disagreement,
+        cumulative_curve,
+        geodesic_distortion,
+    )
     from ..matching import match, symmetry
 
     opts = dict(options or {})
@@ -141,10 +149,12 @@ tosca_remeshed_5k_symmetry`).
     gs = to_numpy(pair.gt_src).astype(np.int64)
     gt = to_numpy(pair.gt_tgt).astype(np.int64)
     gsym = None if pair.gt_sym_tgt is None else to_numpy(pair.gt_sym_tgt).astype(np.int64)
+    rows = np.arange(len(gs))
     if eval_points is not None and eval_points < len(gs):
         rows = np.unique(np.linspace(0, len(gs) - 1, int(eval_points)).round().astype(np.int64))
-        gs, gt = gs[rows], gt[rows]
-        gsym = None if gsym is None else gsym[rows]
+    gs_all, gt_all = gs, gt
+    gs, gt = gs[rows], gt[rows]
+    gsym = None if gsym is None else gsym[rows]
     geo = _geodesics(pair.target)
 
     def errors_of(pred: np.ndarray) -> list[np.ndarray]:
@@ -160,6 +170,11 @@ tosca_remeshed_5k_symmetry`).
         # as torchheat.evaluate.flip_aware_errors: the whole map, ties go to "direct"
         flip_err, choice = (errs[1], "symmetric") if errs[1].mean() < direct.mean() else (
             direct, "direct")
+    # rows whose ground truth contradicts its neighbours' (evaluate.gt_disagreement)
+    _, F_src = pair.source.mesh.numpy()
+    contra = _gt_disagreement(np.asarray(F_src, dtype=np.int64), int(pair.source.mesh.n_vertices),
+                              gs_all, gt_all, rows, geo.field,
+                              math.sqrt(geo.solver.area)) > GT_DISAGREEMENT
     thr = np.asarray(CURVE_THRESHOLDS)
     dist = None
     if distortion:
@@ -187,6 +202,9 @@ tosca_remeshed_5k_symmetry`).
         "eigensolves": stats["eigensolves"],
         "timings": {k: float(v) for k, v in corr.info.get("timings", {}).items()},
         "direct": _summary(direct),
+        # the direct errors on the rows whose ground truth agrees with its neighbours'
+        "gt_contradicted": float(contra.mean()),
+        "consistent": _summary(direct[~contra]) if (~contra).any() else None,
         "flip": None if flip_err is None else _summary(flip_err),
         "flip_choice": choice,
         "curve_thresholds": list(CURVE_THRESHOLDS),
