@@ -223,10 +223,23 @@ def test_preprocess_key_is_stable_and_parameter_sensitive():
     }
     assert len(keys) == 6
     # (k=5.5 solved 5 eigenpairs; a NaN time passed the positivity test)
-    for bad in ({"k": 0}, {"kind": "x"}, {"boundary": "x"}, {"times": [0.0]}, {"k": 5.5},
+    for bad in ({"k": 0}, {"kind": "x"}, {"boundary": "x"}, {"times": [0.0]},
                 {"times": [float("nan")]}, {"times": [1.0, float("inf")]}):
         with pytest.raises(ValueError):
             Preprocess(**bad)
+    # the number of eigenpairs follows prepare's rule: an integer, not a float, not a bool
+    import trimesh
+
+    import torchheat
+
+    ico = trimesh.creation.icosphere(1)
+    sphere = torchheat.Mesh(ico.vertices, ico.faces)
+    for bad_k in (5.5, 3.0, True, "8"):
+        with pytest.raises(TypeError, match="k must be an integer"):
+            Preprocess(k=bad_k)
+        with pytest.raises(TypeError, match="k must be an integer"):
+            torchheat.prepare(sphere, k=bad_k)
+    assert Preprocess(k=np.int64(7)).k == 7 and type(Preprocess(k=np.int64(7)).k) is int
 
 
 def test_cache_hit_parameter_change_and_file_change(spot_files, tmp_path, monkeypatch):

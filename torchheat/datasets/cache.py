@@ -17,6 +17,7 @@ import numpy as np
 from .._arrays import to_numpy
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
+from ..matching.options import _PREPARE_LEAST, _check_numbers
 from ..mesh import Mesh
 from ..operators import check_kind
 
@@ -80,7 +81,9 @@ class Preprocess:
         tuple of floats. Note that ``None`` and the same values spelled out give different
         cache keys (the results are identical).
     k : int
-        Number of eigenpairs (clipped to ``n - 1`` on tiny meshes, as in :class:`HeatKernel`);
+        Number of eigenpairs, an integer as for :func:`torchheat.prepare` (``3.0`` is refused
+        with a ``TypeError``, as there), clipped to ``n - 1`` on tiny meshes, as in
+        :class:`HeatKernel`;
         default :data:`~torchheat.eigen.DEFAULT_EIGENPAIRS` (100), what :func:`torchheat.match`
         uses, so that ``match(pair)`` reads its eigenpairs from the cache.
     kind : {"cotan", "fem", "robust"}
@@ -113,8 +116,8 @@ class Preprocess:
                 raise ValueError("times must be a non-empty sequence of positive finite "
                                  f"numbers, got {list(t)[:5]}")
             object.__setattr__(self, "times", t)
-        if isinstance(self.k, bool) or not float(self.k).is_integer() or int(self.k) < 1:
-            raise ValueError(f"k must be an integer >= 1, got {self.k!r}")  # 5.5 was 5
+        # prepare's rule (5.5 was 5 eigenpairs; 3.0 is refused there too, not truncated)
+        _check_numbers({"k": self.k}, _PREPARE_LEAST)
         object.__setattr__(self, "k", int(self.k))
         check_kind(self.kind, self.boundary)  # the Laplacian's own check
 
