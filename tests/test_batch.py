@@ -282,6 +282,25 @@ def test_summary_counts_contradicted_ground_truth(tmp_path):
     assert md.count("| 2.00 | 99.0 | 0.0250 |") == 2  # overall and the class
 
 
+@needs_data
+def test_evaluate_line_names_contradicted_ground_truth(tmp_path, capsys, monkeypatch):
+    cfg = _config(tmp_path, tmp_path / "line")
+    recs = [_rec("cat0-cat1", "cat", 0.05, 0.90, None, 2.0),
+            _rec("cat0-cat10", "cat", 0.02, 1.00, None, 2.0)]
+    recs[0]["gt_contradicted"], recs[0]["consistent"] = 0.04, {
+        **recs[0]["direct"], "under_0.25": 0.98}
+    recs[1]["gt_contradicted"], recs[1]["consistent"] = 0.0, recs[1]["direct"]
+    monkeypatch.setattr(batch.commands, "run", lambda *a, **k: recs)
+    assert batch.main([str(cfg)]) == 1  # 2 of the config's 3 pairs
+    out = capsys.readouterr().out
+    assert "95.0% < 0.25" in out
+    assert "99.0% on the rows whose ground truth agrees with its neighbours' (2.00% do not)" in out
+    for r in recs:
+        r["gt_contradicted"], r["consistent"] = 0.0, r["direct"]
+    batch.main([str(cfg)])
+    assert "neighbours" not in capsys.readouterr().out
+
+
 def test_bad_config_gives_one_line_error(tmp_path, capsys):
     assert batch.main([str(tmp_path / "missing.yaml")]) == 2
     assert "not found" in capsys.readouterr().err

@@ -75,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{row['pct_under_0.25']:.1f}% < 0.25"
           + ("" if row["flip_pct_under_0.25"] is None
              else f" (flip-aware {row['flip_pct_under_0.25']:.1f}%)")
+          + ("" if not row["gt_contradicted_pct"]
+             else f"; {row['consistent_pct_under_0.25']:.1f}% on the rows whose ground truth "
+                  f"agrees with its neighbours' ({row['gt_contradicted_pct']:.2f}% do not)")
           + f", {row['time_per_pair_s']:.1f} s/pair; wall {time.perf_counter() - t0:.0f} s "
           f"-> {cfg['output']}/summary.md")
     n_tasks = len(_tasks(cfg))
