@@ -612,8 +612,13 @@ def gt_disagreement(
 
     Examples
     --------
-    >>> d = gt_disagreement((V, F), (V2, F2), gt_src, gt_tgt)   # doctest: +SKIP
-    >>> contradicted = d > GT_DISAGREEMENT                       # NaN compares False
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(2)
+    >>> n = len(s.vertices)
+    >>> gt = np.arange(n)                     # the identity: consistent everywhere
+    >>> bool((gt_disagreement((s.vertices, s.faces), (s.vertices, s.faces), gt, gt)
+    ...       > GT_DISAGREEMENT).any())       # NaN (no listed neighbour) compares False
+    False
     """
     Vs, Fs = _as_arrays(source_mesh)
     Vt, Ft = _as_arrays(target_mesh)
