@@ -1084,6 +1084,57 @@ def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
     assert seeds == [8] and match(S, T, method="paper").info["search"] is None
 
 
+def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkeypatch,
+                                                             tmp_path):
+    from test_cli import write_off
+
+    from torchheat.cli import main
+    from torchheat.matching import pipeline
+    from torchheat.matching.quality import map_quality
+
+    S, T, perm, _ = mirror_pair
+    staged, full = match(S, T), match(S, T, staged=False)
+    assert staged.info["search"] == "first stage"  # clear: the default stops there
+    seeds: list[int] = []
+    real = pipeline._refine
+
+    def spy(*a, **k):
+        if a[0] is not a[1]:
+            seeds.append(a[7].source_landmarks)
+        return real(*a, **k)
+
+    monkeypatch.setattr(pipeline, "_refine", spy)
+    v = match(S, T, verify_stage=True)
+    assert seeds == [3, 8]  # the full search ran although the first stage was clear
+    d_staged = map_quality(S, T, staged.map, orientation=0.0).defect
+    d_full = map_quality(S, T, full.map, orientation=0.0).defect
+    kept = staged if d_staged <= d_full else full
+    assert torch.equal(v.map, kept.map)
+    assert (v.info["search"] == "first stage") == (kept is staged)
+    assert float((v.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    # the other way: a first-stage map of higher defect gives way to the full search's
+    defects = iter([1.0, 0.0])
+    monkeypatch.setattr(pipeline, "_defect", lambda *a: next(defects))
+    w = match(S, T, verify_stage=True)
+    assert w.info["search"] == "full (lower isometry defect than the first stage's)"
+    assert torch.equal(w.map, full.map)
+    # no first stage to verify (staged=False): the full search once, as without the option
+    seeds.clear()
+    assert match(S, T, staged=False, verify_stage=True).info["search"] == "full"
+    assert seeds == [8]
+    # the command line's --verify-stage reaches match and its report
+    monkeypatch.undo()
+    a = write_off(tmp_path / "a.off", *S.mesh.numpy())
+    b = write_off(tmp_path / "b.off", *T.mesh.numpy())
+    rep = tmp_path / "r.json"
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m.txt"), "--verify-stage",
+                 "--report", str(rep), "--threads", "1"]) == 0
+    import json
+
+    report = json.loads(rep.read_text())
+    assert report["options"]["verify_stage"] is True and report["search"] == v.info["search"]
+
+
 def test_rival_map_is_a_different_whole_map(mirror_pair, tmp_path, capsys):
     from test_cli import write_off
 

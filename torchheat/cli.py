@@ -497,7 +497,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
         part_kw["partial_margin"] = args.partial_margin
     corr = match(ps, pt, landmark=landmark, landmarks=args.landmarks, method=method,
                  engine=args.engine, num_threads=args.threads, zoomout=args.zoomout,
-                 fine_k=args.fine,
+                 fine_k=args.fine, verify_stage=args.verify_stage,
                  **{dest: getattr(args, dest) for _, dest, _ in _CHOICE_SWITCHES},
                  **part_kw)
     corr.map  # noqa: B018 - the dense map is computed on first access: time it here
@@ -1001,6 +1001,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_refinement(m)
     for flag, dest, text in _CHOICE_SWITCHES:
         m.add_argument(flag, dest=dest, action="store_false", help=text)
+    m.add_argument("--verify-stage", dest="verify_stage", action="store_true",
+                   help="when the first stage's choice is clear, run the full search as well "
+                        "and keep the map of lower isometry defect (TOSCA: 99.3 -> 99.5 %% "
+                        "under 0.25, no pair worse; about 1.1 s more per 5k-vertex pair)")
     m.add_argument("--partial", action="store_true",
                    help="SOURCE is a piece of TARGET (a cut or holed scan of it, in the same "
                         "units): one scale for both shapes, landmarks and samples away from "
