@@ -1104,17 +1104,27 @@ def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkey
         return real(*a, **k)
 
     monkeypatch.setattr(pipeline, "_refine", spy)
+    # a clear first stage whose map reads a low defect is kept without the full search
+    d_staged = map_quality(S, T, staged.map, orientation=0.0).defect
+    assert d_staged <= pipeline._VERIFY_DEFECT
+    assert torch.equal(match(S, T, verify_stage=True).map, staged.map) and seeds == [3]
+    seeds.clear()
+    monkeypatch.setattr(pipeline, "_VERIFY_DEFECT", -1.0)  # every clear first stage verified
     v = match(S, T, verify_stage=True)
     assert seeds == [3, 8]  # the full search ran although the first stage was clear
-    d_staged = map_quality(S, T, staged.map, orientation=0.0).defect
     d_full = map_quality(S, T, full.map, orientation=0.0).defect
     kept = staged if d_staged <= d_full else full
     assert torch.equal(v.map, kept.map)
     assert (v.info["search"] == "first stage") == (kept is staged)
     assert float((v.map == torch.as_tensor(perm)).double().mean()) > 0.99
     # the other way: a first-stage map of higher defect gives way to the full search's
-    defects = iter([1.0, 0.0])
-    monkeypatch.setattr(pipeline, "_defect", lambda *a: next(defects))
+    first_seen: list[dict] = []
+
+    def fake_defect(src, tgt, r):  # the first stage's map (asked first) reads the worse defect
+        first_seen.append(first_seen[0] if first_seen else r)
+        return 1.0 if r is first_seen[0] else 0.0
+
+    monkeypatch.setattr(pipeline, "_defect", fake_defect)
     w = match(S, T, verify_stage=True)
     assert w.info["search"] == "full (lower isometry defect than the first stage's)"
     assert torch.equal(w.map, full.map)
