@@ -58,6 +58,7 @@ import numpy as np
 
 from ._arrays import to_numpy
 from .geometry import face_areas
+from .topology import adjacency_from_keys, edge_keys
 
 __all__ = [
     "GeodesicSolver",
@@ -534,19 +535,12 @@ def flip_aware_errors(
 GT_DISAGREEMENT = 0.1
 
 
-def _vertex_neighbours(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR ``(indptr, indices)`` of the 1-ring of each of ``n`` vertices of faces ``F``."""
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    e = np.unique(np.concatenate([e, e[:, ::-1]]), axis=0)
-    indptr = np.searchsorted(e[:, 0], np.arange(n + 1))
-    return indptr, e[:, 1]
-
-
 def _gt_disagreement(F_src: np.ndarray, n_src: int, gt_src: np.ndarray, gt_tgt: np.ndarray,
                      rows: np.ndarray, field: Any, sqrt_area: float) -> np.ndarray:
     """:func:`gt_disagreement` on arrays; ``field(s)`` gives the distances from target vertex
     ``s`` to every target vertex (shape ``[n_N]``)."""
-    indptr, nbr = _vertex_neighbours(F_src, n_src)
+    ring = adjacency_from_keys(edge_keys(F_src, n_src)[0], n_src)  # the 1-rings
+    indptr, nbr = ring.indptr, ring.indices
     order = np.argsort(gt_src, kind="stable")  # the rows of each source vertex, contiguous
     starts = np.searchsorted(gt_src[order], np.arange(n_src + 1))
     out = np.full(len(rows), np.nan)
