@@ -6,6 +6,7 @@
     python scripts/bench.py match [--source PATH --target PATH]
     python scripts/bench.py partial [--source PIECE --target WHOLE]
     python scripts/bench.py fine  [--source PATH --target PATH] [--k 200]
+    python scripts/bench.py gtcheck [--pairs victoria17:victoria2,...]
 
 Every row is measured in the same run on the same input; errors are relative L2 errors per
 (source, time) against scipy's ``expm_multiply``, maximised over sources and times.
@@ -470,6 +471,66 @@ def bench_fine(args) -> None:
     print(table(rows, ("fine maps", "seconds", "same as float64")))
 
 
+def _gt_disagreement_loop(F, n, gt_src, gt_tgt, rows, field, sqrt_area):
+    """The baseline a user would write for ``evaluate.gt_disagreement``: a Python loop over
+    the checked rows, their 1-ring neighbours and the neighbours' rows (torchheat's code up
+    to the twenty-fifth session)."""
+    import scipy.sparse as sp
+
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
+    A = ((A + A.T) > 0).tocsr()
+    order = np.argsort(gt_src, kind="stable")
+    starts = np.searchsorted(gt_src[order], np.arange(n + 1))
+    out = np.full(len(rows), np.nan)
+    by_source: dict[int, list[int]] = {}
+    for i, k in enumerate(rows.tolist()):
+        by_source.setdefault(int(gt_tgt[k]), []).append(i)
+    for s, idx in by_source.items():
+        d = np.asarray(field(s))
+        for i in idx:
+            x = gt_src[rows[i]]
+            best = [d[gt_tgt[order[starts[v]:starts[v + 1]]]].min()
+                    for v in A.indices[A.indptr[x]:A.indptr[x + 1]].tolist()
+                    if starts[v + 1] > starts[v]]
+            if best:
+                out[i] = float(np.median(best)) / sqrt_area
+    return out
+
+
+def bench_gtcheck(args) -> None:
+    """``evaluate.gt_disagreement`` on every ground-truth row of TOSCA pairs against the plain
+    loop, on the same (precomputed) geodesic fields: times and equality."""
+    from torchheat.datasets import tosca_remeshed_5k
+    from torchheat.evaluate import GeodesicSolver, _gt_disagreement
+
+    pairs = [p.split(":") for p in args.pairs.split(",")]
+    data = tosca_remeshed_5k(pairs=pairs, root=args.root)
+    rows = []
+    for i in range(len(data)):
+        pair = data[i]
+        Vs, Fs = pair.source.mesh.numpy()
+        gs, gt = np.asarray(pair.gt_src), np.asarray(pair.gt_tgt)
+        solver = GeodesicSolver(pair.target.mesh)
+        fields = {int(s): solver.distances(np.array([s]))[0] for s in np.unique(gt)}
+        sa = float(np.sqrt(solver.area))
+        F = np.asarray(Fs, dtype=np.int64)
+        every = np.arange(len(gs))
+        got = {}
+        for name, fn in (("torchheat", _gt_disagreement), ("loop", _gt_disagreement_loop)):
+            best = float("inf")
+            for _ in range(args.repeat):
+                t0 = time.perf_counter()
+                got[name] = fn(F, len(Vs), gs, gt, every, fields.__getitem__, sa)
+                best = min(best, time.perf_counter() - t0)
+            got[name + "_s"] = best
+        same = np.array_equal(got["torchheat"], got["loop"], equal_nan=True)
+        rows.append((pair.name, len(gs), f"{got['torchheat_s']:.4f}", f"{got['loop_s']:.4f}",
+                     f"{got['loop_s'] / got['torchheat_s']:.1f}x", "yes" if same else "NO"))
+    print(f"machine: {machine()}")
+    print(table(rows, ("pair", "rows", "torchheat s", "loop s", "speed-up", "identical")))
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -499,7 +560,15 @@ def main(argv=None) -> None:
     fi.add_argument("--target", help="target mesh (default: a permuted copy)")
     fi.add_argument("--k", type=int, default=200)
     fi.add_argument("--threads", type=int, default=1)
+    g = sub.add_parser("gtcheck", help="ground-truth disagreement: vectorised vs a Python loop")
+    g.add_argument("--pairs", default="victoria17:victoria2,cat0:cat1,michael11:michael2",
+                   help="TOSCA remeshed 5k pairs, source:target,...")
+    g.add_argument("--root", help="data root (default: $TORCHHEAT_DATA or ../shared/data)")
+    g.add_argument("--repeat", type=int, default=3)
     args = p.parse_args(argv)
+    if args.cmd == "gtcheck":
+        bench_gtcheck(args)
+        return
     if args.cmd == "fine":
         bench_fine(args)
         return

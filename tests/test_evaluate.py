@@ -286,6 +286,37 @@ def test_gt_disagreement_finds_corrupted_rows(grid, heat):
         gt_disagreement(grid, grid, src, tgt + 1, solver=heat)
 
 
+def test_gt_disagreement_matches_brute_force(grid):
+    # random rows (duplicates, vertices without rows, boundary vertices with odd and even
+    # neighbour counts) against a per-row loop written from the definition; an arbitrary
+    # (non-metric) field so that nothing but the lookups is tested
+    from torchheat.evaluate import _gt_disagreement
+
+    rng = np.random.default_rng(3)
+    V, F = grid
+    n = len(V)
+    gs = rng.integers(0, n, 2 * n)  # ~13 % of the vertices get no row, many get several
+    gt = rng.integers(0, n, 2 * n)
+    field = rng.random((n, n))
+    nbrs = [set() for _ in range(n)]
+    for a, b, c in np.asarray(F):
+        nbrs[a] |= {b, c}
+        nbrs[b] |= {a, c}
+        nbrs[c] |= {a, b}
+    rows = np.r_[rng.choice(len(gs), 300, replace=False), 0, 0]  # a row checked twice
+    want = np.full(len(rows), np.nan)
+    for i, k in enumerate(rows):
+        best = [field[gt[k]][gt[gs == v]].min() for v in nbrs[gs[k]] if (gs == v).any()]
+        if best:
+            want[i] = np.median(best) / 2.0
+    got = _gt_disagreement(np.asarray(F, dtype=np.int64), n, gs, gt, rows,
+                           lambda s: field[s], 2.0)
+    assert np.isnan(want).sum() < len(rows) // 2  # most rows have listed neighbours
+    np.testing.assert_array_equal(got, want)
+    assert _gt_disagreement(np.asarray(F, dtype=np.int64), n, gs, gt, rows[:0],
+                            lambda s: field[s], 2.0).shape == (0,)
+
+
 @pytest.mark.skipif(not (SHARED / "tosca_remeshed_5k").is_dir(),
                     reason="shared/data not available")
 def test_gt_disagreement_on_tosca_victoria():

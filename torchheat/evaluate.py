@@ -538,26 +538,51 @@ GT_DISAGREEMENT = 0.1
 def _gt_disagreement(F_src: np.ndarray, n_src: int, gt_src: np.ndarray, gt_tgt: np.ndarray,
                      rows: np.ndarray, field: Any, sqrt_area: float) -> np.ndarray:
     """:func:`gt_disagreement` on arrays; ``field(s)`` gives the distances from target vertex
-    ``s`` to every target vertex (shape ``[n_N]``)."""
+    ``s`` to every target vertex (shape ``[n_N]``), asked once per distinct ``gt_tgt[rows]``.
+
+    Vectorised over (checked row, neighbour, neighbour's row) triples: the nearest of each
+    neighbour's row images (``minimum.reduceat``), then the median over a row's neighbours
+    (sorted within each row's run; the mean of the two middle values for an even count, as
+    ``np.median``)."""
     ring = adjacency_from_keys(edge_keys(F_src, n_src)[0], n_src)  # the 1-rings
-    indptr, nbr = ring.indptr, ring.indices
+    indptr, nbr = np.asarray(ring.indptr), np.asarray(ring.indices)
     order = np.argsort(gt_src, kind="stable")  # the rows of each source vertex, contiguous
     starts = np.searchsorted(gt_src[order], np.arange(n_src + 1))
+    count = np.diff(starts)  # rows per source vertex
     out = np.full(len(rows), np.nan)
-    by_source: dict[int, list[int]] = {}
-    for i, k in enumerate(rows.tolist()):
-        by_source.setdefault(int(gt_tgt[k]), []).append(i)
-    for s, idx in by_source.items():
-        d = np.asarray(field(s))
-        for i in idx:
-            x = gt_src[rows[i]]
-            best = []
-            for v in nbr[indptr[x]:indptr[x + 1]].tolist():
-                js = order[starts[v]:starts[v + 1]]
-                if len(js):
-                    best.append(d[gt_tgt[js]].min())
-            if best:
-                out[i] = float(np.median(best)) / sqrt_area
+    if len(rows) == 0:
+        return out
+
+    def runs(first: np.ndarray, length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Owner (position in ``first``) and value of every ``first[i] + 0 .. length[i]-1``."""
+        owner = np.repeat(np.arange(len(first)), length)
+        offset = np.arange(owner.size) - np.repeat(np.cumsum(length) - length, length)
+        return owner, np.repeat(first, length) + offset
+
+    xs = gt_src[rows]
+    pair_row, pos = runs(indptr[xs], indptr[xs + 1] - indptr[xs])  # (row, neighbour) pairs
+    v = nbr[pos]
+    keep = count[v] > 0  # neighbours that have rows
+    pair_row, v = pair_row[keep], v[keep]
+    if pair_row.size == 0:
+        return out
+    trip_pair, at = runs(starts[v], count[v])  # (pair, one of its neighbour's rows)
+    images = gt_tgt[order[at]]
+    src_img = gt_tgt[rows][pair_row][trip_pair]  # the checked row's image, per triple
+    d = np.empty(images.size)
+    by_s = np.argsort(src_img, kind="stable")
+    bounds = np.flatnonzero(np.diff(src_img[by_s])) + 1
+    for grp in np.split(by_s, bounds):
+        d[grp] = np.asarray(field(int(src_img[grp[0]])))[images[grp]]
+    first = np.flatnonzero(np.r_[True, np.diff(trip_pair) != 0])
+    best = np.minimum.reduceat(d, first)  # per pair; pairs come in order, each non-empty
+    srt = np.lexsort((best, pair_row))  # by row, then value
+    best, owner = best[srt], pair_row[srt]
+    m = np.bincount(owner, minlength=len(rows))
+    lo = np.cumsum(m) - m  # each row's run in the sorted order
+    has = m > 0
+    med = 0.5 * (best[(lo + (m - 1) // 2)[has]] + best[(lo + m // 2)[has]])
+    out[has] = med / sqrt_area
     return out
 
 
@@ -600,9 +625,9 @@ def gt_disagreement(
     Notes
     -----
     Cost: one geodesic distance field per distinct ``gt_tgt`` among the checked rows (those
-    :func:`geodesic_errors` mostly computes anyway) and ``O(k * degree)`` lookups (0.14 s for
-    all 5000 rows of a TOSCA pair, fields aside). TOSCA remeshed 5k (all 284 test pairs, every
-    row): 0.50 % of rows above 0.1, 1.34 % on victoria (RESULTS.md).
+    :func:`geodesic_errors` mostly computes anyway) and ``O(k * degree)`` vectorised lookups
+    (``scripts/bench.py gtcheck``, BENCHMARKS.md). TOSCA remeshed 5k (all 284 test pairs,
+    every row): 0.50 % of rows above 0.1, 1.34 % on victoria (RESULTS.md).
 
     Examples
     --------
