@@ -1117,6 +1117,11 @@ def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkey
     assert torch.equal(v.map, kept.map)
     assert (v.info["search"] == "first stage") == (kept is staged)
     assert float((v.map == torch.as_tensor(perm)).double().mean()) > 0.99
+    # the stage timers are those of the kept search (a part of its total), the other
+    # search's total is "verify_search"
+    tv = v.info["timings"]
+    assert tv["verify_search"] > 0
+    assert tv["hypotheses"] <= tv["first_stage" if kept is staged else "verify_search"]
     # the other way: a first-stage map of higher defect gives way to the full search's
     first_seen: list[dict] = []
 
@@ -1128,6 +1133,7 @@ def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkey
     w = match(S, T, verify_stage=True)
     assert w.info["search"] == "full (lower isometry defect than the first stage's)"
     assert torch.equal(w.map, full.map)
+    assert 0 < w.info["timings"]["hypotheses"] <= w.info["timings"]["verify_search"]
     # no first stage to verify (staged=False): the full search once, as without the option
     seeds.clear()
     assert match(S, T, staged=False, verify_stage=True).info["search"] == "full"
