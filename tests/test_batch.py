@@ -404,3 +404,17 @@ def test_an_ambiguous_choice_records_its_rival_map(monkeypatch):
     two = [{**rec, "search": "first stage"}, {**rec, "search": "full (first stage not clear)"}]
     assert batch._row("overall", "all", two)["first_stage"] == 1
     assert batch._row("overall", "all", [{**rec, "search": None}])["first_stage"] is None
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_config_loads(path):
+    # each config names a loader of torchheat.datasets and passes load_config's checks; a
+    # dataset of high-resolution shapes evaluates a subset of points (every vertex of TOSCA
+    # high-res or KIDS would take minutes per pair)
+    from torchheat import datasets
+    from torchheat.batch.config import load_config
+
+    cfg = load_config(path)
+    assert callable(getattr(datasets, cfg["dataset"]))
+    if cfg["dataset"] in ("tosca_hires", "kids"):
+        assert cfg["eval_points"] is not None and cfg["eval_points"] <= 5000
