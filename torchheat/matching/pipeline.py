@@ -353,11 +353,11 @@ def match(
         -> 0.0232, no pair worse, 4 partly wrong pairs right; the full search runs after 71
         of the 254 clear first stages (1.67 -> about 2.0 s per pair in a batch; verifying
         all of them gave the same maps in 2.77 s). SCAPE 50: 95.71 -> 96.28 %, mean 0.0486
-        -> 0.0445. Held out it does not carry over: 60 SCAPE pairs unchanged (98.04 %), 260
-        michael pairs 98.23 -> 97.89 % (two half-turns read the lower defect and won:
-        michael19->14, michael14->3, 99 -> 56 %). Found on the test sets and mixed on
-        held-out humans, hence off by default (RESULTS.md, twenty-fifth session;
-        ``--verify-stage``).
+        -> 0.0445. Held out it is mixed: 60 SCAPE pairs unchanged (98.04 %), 139 TOSCA
+        high-res pairs 99.41 -> 99.68 % (two fixed, none broken), 260 michael pairs 98.23 ->
+        97.89 % (two half-turns read the lower defect and won: michael19->14, michael14->3,
+        99 -> 56 %). Found on the test sets and harmful on held-out humans, hence off by
+        default (RESULTS.md, twenty-fifth and twenty-sixth sessions; ``--verify-stage``).
         ``info["search"]`` says which map was kept; the stage timers of ``info["timings"]``
         are the kept search's, ``"verify_search"`` the other search's total.
     descriptor_seed : bool
