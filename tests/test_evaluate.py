@@ -142,6 +142,11 @@ def test_solver_bad_input(grid, heat):
         GeodesicSolver((V[:, :2], F))
     with pytest.raises(ValueError, match="pair"):
         GeodesicSolver(V)
+    # indices: integral floats are read as vertices (np.loadtxt's), anything else is refused
+    np.testing.assert_array_equal(heat.distances(np.array([3.0])), heat.distances([3]))
+    for bad in ([1.5], [True], [np.inf], [np.nan], [1 + 0j]):
+        with pytest.raises(ValueError, match="integer vertex indices"):
+            heat.distances(np.array(bad))
 
 
 # ------------------------------------------------------------------ Princeton protocol

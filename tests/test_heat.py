@@ -226,8 +226,9 @@ def test_bad_queries(small_mesh):
         with pytest.raises(ValueError, match="positive finite"):
             hk.with_times(bad)
     # a non-integral source was truncated to a vertex
-    with pytest.raises(TypeError, match="integer indices"):
-        hk.columns([1.5])
+    for bad in ([1.5], [True], [float("inf")], [1 + 0j]):  # inf and complex slipped through
+        with pytest.raises(TypeError, match="integer indices"):
+            hk.columns(bad)
     assert torch.equal(hk.columns([1.0, 2]), hk.columns([1, 2]))
     with pytest.raises(ValueError, match="method"):
         HeatKernel(small_mesh, method="magic")

@@ -56,7 +56,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ._arrays import to_numpy
+from ._arrays import integral, to_numpy
 from .geometry import face_areas
 from .topology import adjacency_from_keys, edge_keys
 
@@ -122,9 +122,8 @@ def _indices(x: Any, n: int, name: str) -> np.ndarray:
         a = a.reshape(1)
     if a.ndim != 1:
         raise ValueError(f"{name} must be a 1-D array of vertex indices, got shape {a.shape}")
-    if a.size and not np.issubdtype(a.dtype, np.integer):
-        if not (np.issubdtype(a.dtype, np.floating) and np.all(np.mod(a, 1) == 0)):
-            raise ValueError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
+    if a.size and not integral(a):
+        raise ValueError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
     a = a.astype(np.int64, copy=False)
     if a.size and (a.min() < 0 or a.max() >= n):
         raise ValueError(

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .._arrays import to_numpy
+from .._arrays import integral, to_numpy
 from ..eigen import EigensolverError, eigenpairs
 from ..mesh import Mesh
 from ..operators import Laplacian, laplacian, scipy_to_torch
@@ -540,7 +540,7 @@ class HeatKernel:
     # ---------------------------------------------------------------------------------
     def _reduced_sources(self, sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raw = to_numpy(sources)
-        if raw.dtype.kind == "b" or (raw.dtype.kind in "fc" and not np.all(raw == np.round(raw))):
+        if not integral(raw):
             raise TypeError(f"source vertices must be integer indices, got {raw.dtype} values "
                             f"{raw.reshape(-1)[:5].tolist()}")  # 1.5 was read as vertex 1
         src = raw.astype(np.int64, copy=False).reshape(-1)
