@@ -1123,11 +1123,11 @@ def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkey
     assert tv["verify_search"] > 0
     assert tv["hypotheses"] <= tv["first_stage" if kept is staged else "verify_search"]
     # the other way: a first-stage map of higher defect gives way to the full search's
-    first_seen: list[dict] = []
+    asked: list[dict] = []
 
     def fake_defect(src, tgt, r):  # the first stage's map (asked first) reads the worse defect
-        first_seen.append(first_seen[0] if first_seen else r)
-        return 1.0 if r is first_seen[0] else 0.0
+        asked.append(r)
+        return 1.0 if r is asked[0] else 0.0
 
     monkeypatch.setattr(pipeline, "_defect", fake_defect)
     w = match(S, T, verify_stage=True)
