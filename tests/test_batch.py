@@ -183,6 +183,27 @@ def test_worker_processes_give_the_same_results(reference, tmp_path):
     results = batch.run(_config(tmp_path, out), workers=2, progress=False)
     assert _numbers(results) == _numbers(ref_results)
     assert len(_lines(out)) == 3
+    # the shapes were solved once each (cat0, cat1, cat10, cat2) before the pairs, not by
+    # the pairs' workers; each pair's preparation time carries its share of them: cat0's
+    # solve is split over its three pairs, a target's goes to its one pair
+    assert all(r["eigensolves"] == 0 for r in results)
+    shares = {r["name"]: r["time_shapes"] for r in results}
+    assert all(0 < shares[n] <= r["time_prepare"] for n, r in zip(shares, results, strict=True))
+    assert not list(out.glob(".eigenbases-*"))  # the run's scratch cache is gone
+
+
+@needs_data
+def test_worker_processes_fill_the_configured_cache_first(reference, tmp_path):
+    _, _, _, ref_results = reference
+    cache = tmp_path / "cache"
+    out = tmp_path / "cached"
+    results = batch.run(_config(tmp_path, out, cache=str(cache)), workers=2, progress=False)
+    assert _numbers(results) == _numbers(ref_results)
+    assert len(list(cache.rglob("*.npz"))) == 4  # the four shapes, kept for later runs
+    again = batch.run(_config(tmp_path, tmp_path / "cached2", cache=str(cache)), workers=2,
+                      progress=False)
+    assert _numbers(again) == _numbers(ref_results)
+    assert all(r["eigensolves"] == 0 for r in again)
 
 
 def _ident(task):
@@ -209,6 +230,19 @@ def test_affinity_pool_runs_a_targets_pairs_on_one_worker():
     # a target is split only when a free worker has no untouched target left (at the end);
     # a shared queue (what a plain pool does) alternates the workers within most targets
     assert sum(len(w) > 1 for w in workers.values()) <= 1
+
+
+def test_affinity_pool_maps_every_task_to_free_workers():
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = batch._AffinityPool(0)
+    pool.pools = [ThreadPoolExecutor(max_workers=1) for _ in range(2)]
+    tasks = list(range(9))
+    try:
+        out = list(pool.map_unordered(_ident, tasks))
+    finally:
+        pool.shutdown()
+    assert sorted(t for t, _ in out) == tasks and len({w for _, w in out}) == 2
 
 
 def test_load_results_ignores_partial_line(tmp_path):

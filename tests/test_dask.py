@@ -108,6 +108,11 @@ def test_records_equal_in_process_run_with_one_eigensolve_per_shape(data, cluste
         assert all(r["eigensolves"] == 0 for r in lines)  # none in the pair tasks
         assert _solves(lines) == (N_SHAPES, N_SHAPES)  # one per shape, each once
         assert all(len(r["shapes"]) == 2 for r in lines)
+        # each shape task's seconds are shared out over its pairs' preparation times
+        metas = {m["id"]: m for r in lines for m in r["shapes"]}
+        assert sum(r["time_shapes"] for r in lines) == pytest.approx(
+            sum(m["seconds"] for m in metas.values()))
+        assert all(r["time_prepare"] >= r["time_shapes"] > 0 for r in lines)
     assert len(list((tmp / "cache").glob("*.npz"))) == N_SHAPES
     assert sum(r["eigensolves"] for r in ref) >= N_SHAPES  # in-process: solved in the pairs
     # a re-run through the cache: shape tasks find their entries, no eigensolve at all
