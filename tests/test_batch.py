@@ -189,7 +189,32 @@ def test_worker_processes_give_the_same_results(reference, tmp_path):
     assert all(r["eigensolves"] == 0 for r in results)
     shares = {r["name"]: r["time_shapes"] for r in results}
     assert all(0 < shares[n] <= r["time_prepare"] for n, r in zip(shares, results, strict=True))
-    assert not list(out.glob(".eigenbases-*"))  # the run's scratch cache is gone
+    assert not (out / batch.runner.SCRATCH).exists()  # the run's scratch cache is gone
+
+
+@needs_data
+def test_interrupted_worker_run_keeps_its_scratch_cache_for_the_resume(reference, tmp_path,
+                                                                       monkeypatch, capsys):
+    _, _, _, ref_results = reference
+    out = tmp_path / "interrupted"
+    cfg = _config(tmp_path, out)
+
+    def fail(*a, **k):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(batch.runner, "_append_lines", fail)  # the first record's write
+        with pytest.raises(KeyboardInterrupt):
+            batch.run(cfg, workers=2, progress=False)
+    kept = sorted(p.name for p in (out / batch.runner.SCRATCH).glob("*.npz"))
+    assert len(kept) == 4  # every shape solved before the first pair ended
+    capsys.readouterr()
+    results = batch.run(cfg, workers=2, progress=True)
+    assert _numbers(results) == _numbers(ref_results)
+    # the resume read the kept entries: no eigensolve, in the shape phase or in the pairs
+    assert "eigensolves this run: 0 (0 in 4 shape tasks, 0 in pair tasks)" in \
+        capsys.readouterr().err
+    assert not (out / batch.runner.SCRATCH).exists()
 
 
 @needs_data

@@ -12,7 +12,6 @@ import dataclasses
 import os
 import shutil
 import sys
-import tempfile
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -313,14 +312,17 @@ def run(
             if executor is None and workers > 1 and len(todo) > 1:
                 scratch = None
                 if cfg["task"] == "match" and not cfg.get("cache"):
-                    # the run's eigenbases, handed from the shape phase to the pairs; removed
-                    # when the run ends (after the pool has shut down: callbacks run LIFO)
-                    scratch = tempfile.mkdtemp(prefix=".eigenbases-", dir=out)
-                    owned.callback(shutil.rmtree, scratch, ignore_errors=True)
+                    # the run's eigenbases, handed from the shape phase to the pairs (entries
+                    # keyed by file content and parameters): removed when the run completes,
+                    # after the pool has shut down (exit callbacks run LIFO); an interrupted
+                    # run leaves them to its resume (the folder lock: one run at a time)
+                    scratch = out / SCRATCH
+                    scratch.mkdir(exist_ok=True)
+                    owned.push(_remove_when_done(scratch))
                 pool = _AffinityPool(int(workers), initializer=_worker_init)
                 owned.callback(pool.shutdown, wait=True, cancel_futures=True)
                 if cfg["task"] == "match":
-                    todo = _solve_shapes_first(pool, cfg, todo, cfg.get("cache") or scratch,
+                    todo = _solve_shapes_first(pool, cfg, todo, str(cfg.get("cache") or scratch),
                                                solves, progress)
                 records = pool.run(_run_task, todo, key=_target_of)
             else:
@@ -363,15 +365,31 @@ def run(
     return results
 
 
+#: the scratch cache folder of a local multi-worker run without ``cache`` (in the output folder)
+SCRATCH = ".eigenbases"
+
+
+def _remove_when_done(folder: Path) -> Callable[..., bool]:
+    """An exit callback (``ExitStack.push``) removing ``folder`` if no exception is in flight."""
+
+    def exit_(exc_type: object, *_: object) -> bool:
+        if exc_type is None:
+            shutil.rmtree(folder, ignore_errors=True)
+        return False
+
+    return exit_
+
+
 def _solve_shapes_first(pool: _AffinityPool, cfg: Mapping[str, Any], todo: list[PairTask],
                         cache: str, solves: _Eigensolves, progress: bool) -> list[PairTask]:
     """The shape phase of a local multi-worker ``match`` run: every shape of the pending
     pairs is prepared once (its eigensolve, written to the disk cache ``cache``: the config's
-    own or the run's scratch folder) by the next free worker, before any pair runs; the
-    pairs, returned, then read their shapes from that cache.
+    own, else the run's scratch folder ``<output>/.eigenbases``, removed when the run
+    completes and kept by an interrupted run for its resume) by the next free worker, before
+    any pair runs; the pairs, returned, then read their shapes from that cache.
 
     Without it each worker solved every shape it met (the pairs of one target run on one
-    worker, but its sources run on both): 141 eigensolves for TOSCA's 76 shapes, 42 for
+    worker, but its sources run on both): 141 eigensolves for TOSCA's 76 shapes, 43 for
     SCAPE 50's 20. The maps are the same (the workers solve with one thread either way, and a
     cached eigenbasis is the solved one, bit for bit). Each pair's ``time_prepare`` carries
     its share of its shapes' eigensolves (a shape's seconds divided among the pending pairs
