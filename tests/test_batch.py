@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import kill_after_first_record
+from conftest import deformed_spheres, kill_after_first_record
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -255,6 +255,28 @@ def test_affinity_pool_runs_a_targets_pairs_on_one_worker():
     # a target is split only when a free worker has no untouched target left (at the end);
     # a shared queue (what a plain pool does) alternates the workers within most targets
     assert sum(len(w) > 1 for w in workers.values()) <= 1
+
+
+def test_worker_run_with_an_unreadable_shape_reports_its_pairs(tmp_path, capsys):
+    # the shape phase does not stop the run: the pairs of a shape it could not solve fail
+    # one by one, naming the file, and the others are the in-process run's records
+    meshes = tmp_path / "meshes"
+    deformed_spheres(meshes, n=3, subdivisions=2)  # blob0..2, 162 vertices
+    (meshes / "blob9.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")  # truncated
+    cfg = {"name": "bad", "dataset": "folder", "task": "match", "pictures": 0,
+           "dataset_args": {"path": str(meshes), "classes": ["blob"] * 4, "gt": "identity",
+                            "pairs": [["blob0", "blob1"], ["blob9", "blob1"],
+                                      ["blob1", "blob2"]]},
+           "match": {"method": "paper"}, "prepare": {"k": 30}}
+    ref = batch.run({**cfg, "output": str(tmp_path / "ref")}, progress=False)
+    capsys.readouterr()
+    got = batch.run({**cfg, "output": str(tmp_path / "out")}, workers=2, progress=False)
+    err = capsys.readouterr().err
+    assert "blob9-blob1: failed:" in err and "blob9.off" in err
+    assert "1 of 3 pairs failed (re-run to retry)" in err
+    assert [r["name"] for r in got] == [r["name"] for r in ref] == ["blob0-blob1", "blob1-blob2"]
+    assert _numbers(got) == _numbers(ref)
+    assert all(r["eigensolves"] == 0 and r["time_shapes"] > 0 for r in got)
 
 
 def test_affinity_pool_maps_every_task_to_free_workers():
