@@ -13,7 +13,7 @@ from .options import _Options
 from .orientation import _orientation, _triangles
 from .partial import grow_hypothesis
 from .prepared import PreparedShape, _fps, _memoised
-from .refine import _is_identity, _Refiner
+from .refine import Hypothesis, _is_identity, _Refiner
 
 
 class _Hypotheses:
@@ -84,7 +84,7 @@ class _Hypotheses:
         return stage
 
     def refine_kept(self, stage: list, forced: list, self_match: bool
-                    ) -> tuple[list[dict], list, list[torch.Tensor]]:
+                    ) -> tuple[list[Hypothesis], list, list[torch.Tensor]]:
         """The ``opt.refine_keep`` hypotheses of ``stage`` with the lowest round-1 energies,
         and every ``forced`` one (``(landmarks, sample images)``), refined further; a
         hypothesis that starts far behind does not converge (measured: the energies of
@@ -104,7 +104,7 @@ class _Hypotheses:
             first = ident.index(True) if any(ident) else -1
             stage = [s_ for i, s_ in enumerate(stage) if not ident[i] or i == first]
         keep = len(stage) if opt.refine_keep is None else max(1, int(opt.refine_keep))
-        results: list[dict] = []
+        results: list[Hypothesis] = []
         hypotheses: list = []
         hyp_images: list[torch.Tensor] = []
         for e1, _, lms0, g0 in stage[keep:]:

@@ -50,7 +50,7 @@ from .prepared import (
     _role_copy,
 )
 from .quality import MapQuality, map_quality
-from .refine import _agree, _dense_final, _fixed_share, _is_identity, _Refiner
+from .refine import Hypothesis, _agree, _dense_final, _fixed_share, _is_identity, _Refiner
 from .result import Correspondence, _numbering
 from .select import (
     _DESCR_DIRECT,
@@ -625,7 +625,7 @@ def _pair_shapes(pair: Any) -> tuple[Any, Any]:
 
 def _paper_maps(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
                 p2: int | None, landmarks: int, use_hks: bool, engine: str
-                ) -> tuple[dict, dict | None]:
+                ) -> tuple[Hypothesis, Hypothesis | None]:
     """``method="paper"``: the dense maps of the two best distinct candidates of ``p`` (each
     expanded with the twin landmark ``p2`` when there is one), completed to ``landmarks``
     landmark pairs by the paper's greedy search; ``{"landmarks", "map", "energy"}`` of the
@@ -725,7 +725,7 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
 _VERIFY_DEFECT = 0.2
 
 
-def _defect(src: PreparedShape, tgt: PreparedShape, r: dict) -> float:
+def _defect(src: PreparedShape, tgt: PreparedShape, r: Hypothesis) -> float:
     """Isometry defect of a chosen map's dense map (computed here if deferred; both kept)."""
     if "defect" not in r:
         if callable(r["map"]):
@@ -808,10 +808,10 @@ def _piece_seeds(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, opt: _
     return forced, zo_d.C
 
 
-def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: list[dict],
+def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: list[Hypothesis],
             mirror: dict | None, opt: _Options, timings: dict, memo: dict | None,
             hypotheses: list, hyp_images: list[torch.Tensor]
-            ) -> tuple[dict, dict | None, list]:
+            ) -> tuple[Hypothesis, Hypothesis | None, list]:
     """The direct and symmetric maps among the refined hypotheses ``by_energy`` (lowest
     energy first) and the ``mirror`` of the best: by ZoomOut for two whole
     shapes (:func:`~torchheat.matching.select._spectral_choice`), else by energy and
@@ -844,7 +844,7 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
     w = opt.orientation_weight if opt.orientation else 0.0
     zo_diag: list = []
 
-    def logE(r: dict) -> float:
+    def logE(r: Hypothesis) -> float:
         return math.log(max(r["energy"], 1e-300))
 
     if opt.zoomout and tgt is not src and opt.partial_ratio is None:
@@ -886,7 +886,7 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             # a near-identity mixture reading -0.19 won by its low energy on victoria12)
             if not opt.orientation or alt["orientation"] <= -_DESCR_DIRECT:
                 rest.append(alt)
-        def sym_score(r: dict) -> float:
+        def sym_score(r: Hypothesis) -> float:
             s_ = logE(r) + w * r["orientation"]
             if tgt is src and opt.fixed_weight:  # a reflection fixes only a band
                 s_ += opt.fixed_weight * _fixed_share(r, Vs, 0.05 * diam_s, samples)
@@ -910,7 +910,7 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
     return direct, sym, zo_diag
 
 
-def _dense_maps(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, direct: dict,
+def _dense_maps(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, direct: Hypothesis,
                 sym: dict | None, opt: _Options, timings: dict) -> None:
     """The chosen maps' dense maps (``"map"``, computed when first asked for), landmarks
     (``"landmarks"``: the hypothesis' own, then the samples and their images) and, for two

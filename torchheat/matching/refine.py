@@ -1,5 +1,6 @@
 """Refinement by correspondence augmentation: multi-landmark heat-kernel descriptors in factored
-form and the refiner that maps samples and recomputes.
+form and the refiner that maps samples and recomputes; :class:`Hypothesis`, the record of one
+whole map that the stages (hypotheses, ZoomOut choice, dense maps) pass on.
 """
 
 from __future__ import annotations
@@ -7,6 +8,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 import torch
@@ -18,7 +20,68 @@ from ..heat import threads
 from .nn import _Factors, _nn_factors, _nn_factors_pruned
 from .prepared import PreparedShape, _fps
 
+if TYPE_CHECKING:
+    from .zoomout import ZoomOutResult
+
 _REFINE_TIMES = slice(1, None, 2)  # every other time sample: half the dimensions, same span
+
+
+class Hypothesis(TypedDict, total=False):
+    """One whole map the refined pipeline considers, as it passes through the stages.
+
+    A plain dict at run time (copies are ``{**r, ...}``; the stages add keys as they go), typed
+    here so that every key is declared once. Seeding and refinement
+    (:mod:`.hypotheses`) give the first four; the ZoomOut choice (:mod:`.select`) the ``zo*``
+    keys and the kind flags; the dense stage (:mod:`.pipeline`) the outputs.
+    """
+
+    # --- seeding and refinement (correspondence augmentation on the refinement samples)
+    lms0: list[tuple[int, int]]
+    """Starting landmark pairs ``(source, target)``; empty for landmark-free candidates."""
+    g: torch.Tensor
+    """int64, (s,): target images of the refinement samples."""
+    energy: float
+    """Mean squared descriptor distance of the last refinement round (NaN: not refined)."""
+    orientation: float
+    """Orientation score of the sample map (+1 direct, -1 mirror; :mod:`.orientation`)."""
+    descriptor_seed: bool
+    """Seeded by the landmark-free descriptor functional map (:mod:`.fmap`)."""
+    agree_descr: float
+    """A piece's hypotheses: agreement with the landmark-free map (:mod:`.pipeline`)."""
+    # --- the ZoomOut choice
+    zo: ZoomOutResult
+    """Its ZoomOut to the choice's size (images of the ZoomOut rows, functional map)."""
+    zo_orientation: float
+    """Orientation read on the ZoomOut map (clearer than on the samples)."""
+    zo_tear: float
+    """Share of torn neighbour pairs of the ZoomOut map (``select._Tear``)."""
+    zo_score: float
+    """Score before polishing (the copies kept as they were, ``select._spectral_choice``)."""
+    zo_margin: float | None
+    """The chosen map: how much worse its best rival scored (None: no rival)."""
+    zo_rival: Hypothesis | None
+    """The chosen map: that rival (a different whole map)."""
+    zo_tie_break: tuple[float, float]
+    """An ambiguous choice: signature errors (chosen, rival), ``select._descriptor_tie_break``."""
+    reoriented: bool
+    """A reoriented twin (``select._reoriented_candidates``)."""
+    trimmed: bool
+    """An orientation-trimmed twin (``select._trimmed_candidates``)."""
+    polished: bool
+    """Polished by correspondence augmentation before the choice (``select._polish_candidates``)."""
+    # --- the chosen maps' outputs
+    map: torch.Tensor | Callable[[], torch.Tensor] | None
+    """int64, (n,): the dense map, or the function computing it on first access."""
+    landmarks: list[tuple[int, int]]
+    """The landmark pairs reported (:attr:`.Correspondence.landmarks`)."""
+    rival_map: Callable[[], torch.Tensor] | None
+    """The dense map of ``zo_rival``, deferred (:attr:`.Correspondence.rival_map`)."""
+    defect: float
+    """``verify_stage``: the dense map's quality defect (``pipeline._defect``)."""
+    partial_dense: str
+    """A piece: which dense map was kept, ``"heat kernel"`` or ``"zoomout"``."""
+    partial_dense_quality: dict[str, float]
+    """A piece: the partial quality of both dense maps."""
 
 
 # Precision of the intermediate refinement rounds. The descriptors are centred (the constant
@@ -145,13 +208,13 @@ def _agree(V: np.ndarray, a: torch.Tensor, b: torch.Tensor, radius: float) -> fl
     return float(np.mean(np.linalg.norm(V[a.numpy()] - V[b.numpy()], axis=1) <= radius))
 
 
-def _fixed_share(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
+def _fixed_share(r: Hypothesis, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
     """Share of the samples that a self-map hypothesis leaves in place: images within
     ``radius`` (Euclidean) of themselves."""
     return _agree(V, r["g"], samples, radius)
 
 
-def _is_identity(r: dict, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
+def _is_identity(r: Hypothesis, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
     """Whether a refined self-map hypothesis is (mostly) the identity: most samples land
     within ``radius`` of themselves (its starting landmarks may not say so)."""
     return _fixed_share(r, V, radius, samples) > 0.5

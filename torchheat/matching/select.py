@@ -30,7 +30,7 @@ from .orientation import _orientation, _orientation_signs, _triangles
 from .partial import dense_partial_map, partial_zoomout
 from .prepared import PreparedShape, _fps, _memoised
 from .quality import AMBIGUOUS_BELOW, map_quality
-from .refine import _agree, _Refiner
+from .refine import Hypothesis, _agree, _Refiner
 from .zoomout import ZoomOutResult, dense_spectral_map, fine_map, spectral_map, zoomout
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
@@ -47,11 +47,11 @@ _ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct map
 _ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
 
 
-def _distinct_hypotheses(pool: list[dict], Vt: np.ndarray, radius: float, limit: int
-                         ) -> list[dict]:
+def _distinct_hypotheses(pool: list[Hypothesis], Vt: np.ndarray, radius: float, limit: int
+                         ) -> list[Hypothesis]:
     """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
     of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
-    out: list[dict] = []
+    out: list[Hypothesis] = []
     for r in sorted(pool, key=lambda r: r["energy"]):
         if all(_agree(Vt, r["g"], o["g"], radius) < _ZO_SAME for o in out):
             out.append(r)
@@ -103,7 +103,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                      pool: list[dict], opt: _Options, timings: dict,
                      symmetries_at: SymmetriesAt, memo: dict | None = None,
                      polish: Callable[[torch.Tensor], torch.Tensor] | None = None
-                     ) -> tuple[dict, dict | None, list]:
+                     ) -> tuple[Hypothesis, Hypothesis | None, list]:
     """Choose the direct and symmetric maps among refined hypotheses by ZoomOut.
 
     Each distinct hypothesis is upsampled from its 48 sample images to ``_ZO_SELECT_K``
@@ -138,7 +138,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     # the pair's memo: functional-map Hessians (descriptor and reoriented maps), ZoomOuts
     memo = {} if memo is None else memo
 
-    def score(r: dict, sign: float) -> float:
+    def score(r: Hypothesis, sign: float) -> float:
         o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
         return _base_score(r, tear) - w * o
 
@@ -218,7 +218,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 _CLEAR_MARGIN = 0.75
 
 
-def _clear(direct: dict) -> bool:
+def _clear(direct: Hypothesis) -> bool:
     """Whether a first-stage choice is clear enough to skip the full search (see
     ``_CLEAR_MARGIN``); a choice without a rival is not."""
     return _clear_choice(direct.get("zo_margin"), direct.get("zo_orientation"))
@@ -261,7 +261,7 @@ class _Tear:
         return float(np.mean(np.linalg.norm(Q[self.a] - Q[self.b], axis=1) > self.radius))
 
 
-def _base_score(r: dict, tear: _Tear) -> float:
+def _base_score(r: Hypothesis, tear: _Tear) -> float:
     """``log(residual) + tear.weight * tear`` of a ZoomOut candidate (the tear memoised)."""
     if not tear.weight:
         return math.log(max(r["zo"].residual, 1e-300))
@@ -276,7 +276,7 @@ _REORIENT_K = 30  # size of the reoriented functional map (then ZoomOut to the c
 
 
 def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                           at_samples: torch.Tensor | None, cands: list[dict], k_sel: int,
+                           at_samples: torch.Tensor | None, cands: list[Hypothesis], k_sel: int,
                            targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
                            tear: _Tear, memo: dict | None = None) -> list[dict]:
     """An orientation-preserving twin of each of the ``_REORIENT_TOP`` best-aligned ZoomOut
@@ -295,7 +295,7 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     phi_s, phi_t = _bases(src, tgt)
     top = sorted(cands, key=lambda r: _base_score(r, tear))[:_REORIENT_TOP]
     k0 = min(_REORIENT_K, k_sel)
-    out: list[dict] = []
+    out: list[Hypothesis] = []
     for r in top:
         im = r["zo"].images
         def twin(im: torch.Tensor = im) -> ZoomOutResult:
@@ -315,8 +315,8 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
 
 
 def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                       at_samples: torch.Tensor, samples: torch.Tensor, cands: list[dict],
-                       score: Callable[[dict], float],
+                       at_samples: torch.Tensor, samples: torch.Tensor, cands: list[Hypothesis],
+                       score: Callable[[Hypothesis], float],
                        polish: Callable[[torch.Tensor], torch.Tensor], k_sel: int,
                        targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
                        memo: dict | None = None) -> list[dict]:
@@ -365,7 +365,7 @@ def _log_wks(shape: PreparedShape, energies: np.ndarray, sigma: float) -> np.nda
 
 
 def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                          direct: dict) -> dict:
+                          direct: Hypothesis) -> Hypothesis:
     """The chosen candidate or its rival (``direct["zo_rival"]``), whichever maps the ZoomOut
     ``rows`` onto points of more similar wave kernel signature (mean over rows and energies
     of ``|log WKS_M(x) - log WKS_N(f(x))|``, each shape's log-WKS centred; energies shared,
@@ -388,7 +388,7 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     Ds = _log_wks(src, energies, sigma)[rows.numpy()]
     Dt = _log_wks(tgt, energies, sigma)
 
-    def error(r: dict) -> float:
+    def error(r: Hypothesis) -> float:
         return float(np.abs(Ds - Dt[r["zo"].images.numpy()]).mean())
 
     e_direct, e_rival = error(direct), error(rival)
@@ -403,8 +403,8 @@ _RIVAL_RADIUS = 0.1  # x sqrt(area(N)): sample images this close agree
 _RIVAL_AGREE = 0.5  # a candidate agreeing with the chosen one on fewer samples is a rival
 
 
-def _rival(chosen: dict, cands: list[dict], score: Callable[[dict], float],
-           tgt: PreparedShape) -> tuple[float | None, dict | None]:
+def _rival(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
+           tgt: PreparedShape) -> tuple[float | None, Hypothesis | None]:
     """The best rival of the chosen candidate and how much worse it scored: a rival is a
     different whole map (its images of the ZoomOut rows agree with the chosen one's within
     ``_RIVAL_RADIUS sqrt(area(N))`` on fewer than ``_RIVAL_AGREE`` of them). ``(None, None)``
@@ -431,7 +431,7 @@ _TRIM_MIN = 40  # fewest rows a trimmed candidate is seeded from
 
 def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                         pos: torch.Tensor, at_samples: torch.Tensor | None, tri: tuple,
-                        parents: list[dict], k_sel: int,
+                        parents: list[Hypothesis], k_sel: int,
                         targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
                         memo: dict | None = None) -> list[dict]:
     """Each of the ZoomOut candidates ``parents`` again, seeded only from its rows whose
@@ -455,7 +455,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     r_np = rows.numpy()
     _, nb = cKDTree(Vs[r_np]).query(Vs[r_np], k=min(_TRIM_K, len(r_np)))
     phi_s, phi_t = _bases(src, tgt)
-    out: list[dict] = []
+    out: list[Hypothesis] = []
     for r in parents:
         images = r["zo"].images
         sg = _orientation_signs(src, tgt, tri, lambda i, f=images: f[pos[i]].numpy())
@@ -480,7 +480,7 @@ _MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measur
 
 
 def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                     at_samples: torch.Tensor, cands: list[dict], opt: _Options, k_sel: int,
+                     at_samples: torch.Tensor, cands: list[Hypothesis], opt: _Options, k_sel: int,
                      targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
                      symmetries_at: SymmetriesAt, memo: dict | None = None) -> list[dict]:
     """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
@@ -496,7 +496,7 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     phi_s, phi_t = _bases(src, tgt)
-    out: list[dict] = []
+    out: list[Hypothesis] = []
     src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
     for r in [c for c in cands if c["zo_orientation"] < _MIRROR_BELOW]:
         # sigma_N o T for each target symmetry
@@ -525,7 +525,7 @@ _DESCR_DIRECT = 0.3  # descriptor candidate a variant of a candidate reading thi
 
 def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Tensor,
                          tri: tuple, samples: torch.Tensor, refiner: _Refiner, opt: _Options
-                         ) -> dict:
+                         ) -> Hypothesis:
     """A shape's intrinsic symmetry from no landmark, as a hypothesis: the
     orientation-reversing functional map of its wave kernel signatures
     (:func:`~torchheat.matching.fmap.descriptor_functional_map`, ``reversing=True``), its images
@@ -541,7 +541,7 @@ def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Te
 
 
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                          at_samples: torch.Tensor, cands: list[dict], k_sel: int,
+                          at_samples: torch.Tensor, cands: list[Hypothesis], k_sel: int,
                           targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
                           memo: dict | None = None) -> list[dict]:
     """One more ZoomOut candidate that no landmark started: the functional map of the
@@ -577,7 +577,7 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
              "descriptor_seed": True}]
 
 
-def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: dict, refiner: _Refiner,
+def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: Hypothesis, refiner: _Refiner,
                            opt: _Options, expect: int, timings: dict
                            ) -> Callable[[], torch.Tensor]:
     """A piece's dense map, deferred: the heat-kernel map of the chosen hypothesis or its
