@@ -141,6 +141,7 @@ def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
     from types import SimpleNamespace
 
     from torchheat.matching.prepared import _fps
+    from torchheat.matching.refine import Hypothesis
     from torchheat.matching.select import _descriptor_candidate
 
     src, tgt, perm = cow_pair
@@ -149,14 +150,14 @@ def test_descriptor_candidate_steps_aside_for_a_direct_variant(cow_pair):
     targets = _fps(tgt, 2000)
     first = _descriptor_candidate(src, tgt, rows, at_samples, [], 60, targets, lambda im: 0.9)
     assert len(first) == 1
-    images = first[0]["zo"].images.clone()
+    images = first[0].zo.images.clone()
     # the same map with its last 30 % of samples sent to one far target vertex
     W, _ = tgt.mesh.numpy()
     far = int(np.argmax(np.linalg.norm(W - W[images[0].item()], axis=1)))
     variant = images.clone()
     variant[int(0.7 * len(variant)):] = far
     for orientation, kept in ((0.8, 0), (-0.8, 1)):
-        cand = {"zo": SimpleNamespace(images=variant), "zo_orientation": orientation}
+        cand = Hypothesis(zo=SimpleNamespace(images=variant), zo_orientation=orientation)
         out = _descriptor_candidate(src, tgt, rows, at_samples, [cand], 60, targets,
                                     lambda im: 0.9)
         assert len(out) == kept

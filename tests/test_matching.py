@@ -7,6 +7,7 @@ exact answer) and the known mirror permutation of a mesh symmetric under y -> -y
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -23,6 +24,7 @@ from torchheat import matching as tm
 from torchheat.descriptors import feature_points, heat_kernel_map
 from torchheat.heat import threads
 from torchheat.matching import match, nearest_neighbors, orientation_score, prepare, symmetry
+from torchheat.matching.refine import Hypothesis
 
 
 # ------------------------------------------------------------------------------------------
@@ -849,18 +851,18 @@ def test_trimmed_candidate_unfolds_a_half_reflected_map(mirror_pair):
         return _orientation(S, S, tri, lambda i: images[pos[i]].numpy())
 
     def cand(m):
-        return {"zo": ZoomOutResult(rows, m[rows], None, 1.0), "zo_orientation": orient(m[rows]),
-                "g": m[rows[:48]], "lms0": [(0, 0)]}
+        return Hypothesis(zo=ZoomOutResult(rows, m[rows], None, 1.0),
+                          zo_orientation=orient(m[rows]), g=m[rows[:48]], lms0=[(0, 0)])
 
     parent = cand(fold)
-    assert abs(parent["zo_orientation"]) < 0.3
+    assert abs(parent.zo_orientation) < 0.3
     out = _trimmed_candidates(S, S, rows, pos, torch.arange(48), tri, [parent], 30, None, orient)
     assert len(out) == 1
     twin = out[0]
-    assert float((twin["zo"].images == rows).double().mean()) > 0.95
-    assert twin["zo_orientation"] > 0.9 and twin["trimmed"] and twin["lms0"] == [(0, 0)]
-    assert torch.equal(twin["g"], twin["zo"].images[:48])
-    assert parent["zo_orientation"] == orient(fold[rows])  # the parent is left as it was
+    assert float((twin.zo.images == rows).double().mean()) > 0.95
+    assert twin.zo_orientation > 0.9 and twin.trimmed and twin.lms0 == [(0, 0)]
+    assert torch.equal(twin.g, twin.zo.images[:48])
+    assert parent.zo_orientation == orient(fold[rows]) and not parent.trimmed  # left as it was
     identity = cand(torch.arange(S.n))
     assert _trimmed_candidates(S, S, rows, pos, torch.arange(48), tri, [identity], 30, None,
                                orient) == []
@@ -935,22 +937,24 @@ def test_polished_candidates_keep_their_map_and_lose_their_noise(mirror_pair):
 
     truth, mirror = torch.as_tensor(perm)[rows], torch.as_tensor(perm[mp])[rows]
     right, copy = noisy(truth), None
-    cands = [{"s": 0.0, "zo": SimpleNamespace(images=right)},
-             {"s": 0.1, "zo": SimpleNamespace(images=noisy(mirror))},
-             {"s": 0.2, "zo": SimpleNamespace(images=right.clone())},  # the same map again
-             {"s": select._CLEAR_MARGIN + 0.01, "zo": SimpleNamespace(images=noisy(mirror))}]
+    cands = [Hypothesis(zo=SimpleNamespace(images=right)),
+             Hypothesis(zo=SimpleNamespace(images=noisy(mirror))),
+             Hypothesis(zo=SimpleNamespace(images=right.clone())),  # the same map again
+             Hypothesis(zo=SimpleNamespace(images=noisy(mirror)))]
+    scores = dict(zip(map(id, cands), [0.0, 0.1, 0.2, select._CLEAR_MARGIN + 0.01],
+                      strict=True))
     copy, far = cands[2], cands[3]
-    far_zo = far["zo"]
+    far_zo = far.zo
     out = select._polish_candidates(
-        S, T, rows, at, samples, cands, lambda r: r["s"],
+        S, T, rows, at, samples, cands, lambda r: scores[id(r)],
         lambda g0: refiner.augment(g0, samples, 3)[1], 60, _fps(T, 2000), lambda im: 0.0)
-    assert copy not in out and len(out) == 3
-    assert out[0]["polished"] and out[1]["polished"] and "polished" not in far
-    assert far["zo"] is far_zo
-    assert float((out[0]["zo"].images == truth).double().mean()) >= 0.98
-    assert float((out[1]["zo"].images == mirror).double().mean()) >= 0.98
+    assert all(o is not copy for o in out) and len(out) == 3
+    assert out[0].polished and out[1].polished and not far.polished
+    assert far.zo is far_zo
+    assert float((out[0].zo.images == truth).double().mean()) >= 0.98
+    assert float((out[1].zo.images == mirror).double().mean()) >= 0.98
     assert float((right == truth).double().mean()) < 0.8  # they were noisy
-    assert torch.equal(out[0]["g"], out[0]["zo"].images[at])
+    assert torch.equal(out[0].g, out[0].zo.images[at])
 
 
 def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
@@ -970,16 +974,16 @@ def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
     right_im = torch.as_tensor(perm)[rows]
     assert float((antipode[right_im] == right_im).double().mean()) < 0.05
     for first in ("right", "wrong"):
-        right = {"zo": SimpleNamespace(images=right_im)}
-        wrong = {"zo": SimpleNamespace(images=antipode[right_im])}
+        right = Hypothesis(zo=SimpleNamespace(images=right_im))
+        wrong = Hypothesis(zo=SimpleNamespace(images=antipode[right_im]))
         chosen, rival = (right, wrong) if first == "right" else (wrong, right)
-        chosen.update(zo_margin=0.05, zo_rival=rival)
+        chosen.zo_margin, chosen.zo_rival = 0.05, rival
         out = select._descriptor_tie_break(S, T, rows, chosen)
-        assert out is right and out["zo_margin"] == 0.05
-        e_right, e_wrong = out["zo_tie_break"]
+        assert out is right and out.zo_margin == 0.05
+        e_right, e_wrong = out.zo_tie_break
         assert e_right < 1e-6 < 0.1 < e_wrong  # an exact isometric copy: only rounding
         if first == "wrong":
-            assert out["zo_rival"] is wrong
+            assert out.zo_rival is wrong
     # a match reports it (None unless its choice was ambiguous), JSON-able in its report
     corr = match(S, T)
     assert corr.info["tie_break"] is None and "tie_break" not in corr.report()
@@ -994,7 +998,7 @@ def test_tie_break_option_reaches_ambiguous_choices(mirror_pair, monkeypatch):
 
     S, T, perm, _ = mirror_pair
     monkeypatch.setattr(select, "AMBIGUOUS_BELOW", 1e9)
-    calls = _spy(monkeypatch, "_descriptor_tie_break", 3)
+    calls = _spy(monkeypatch, "_descriptor_tie_break", 2)  # its rows
     on = match(S, T, staged=False)
     assert len(calls) == 1 and on.info["tie_break"] is not None
     e_kept, e_other = on.info["tie_break"]
@@ -1014,7 +1018,8 @@ def test_zoomout_diagnostics_list_the_chosen_candidate(mirror_pair, monkeypatch)
     S, T, _, _ = mirror_pair
     monkeypatch.setattr(select, "AMBIGUOUS_BELOW", 1e9)
     monkeypatch.setattr(select, "_descriptor_tie_break",
-                        lambda src, tgt, rows, direct: {**direct, "zo_tie_break": (0.0, 0.0)})
+                        lambda src, tgt, rows, direct: dataclasses.replace(
+                            direct, zo_tie_break=(0.0, 0.0)))
     corr = match(S, T, staged=False)
     chosen = [d for d in corr.info["zoomout_candidates"] if d[4]]
     assert len(chosen) == 1
@@ -1038,11 +1043,11 @@ def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
 def test_clear_needs_a_margin_and_a_direct_orientation():
     from torchheat.matching.select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
 
-    ok = {"zo_margin": _CLEAR_MARGIN + 0.01, "zo_orientation": _ZO_ORIENT_CLIP + 0.1}
+    ok = Hypothesis(zo_margin=_CLEAR_MARGIN + 0.01, zo_orientation=_ZO_ORIENT_CLIP + 0.1)
     assert _clear(ok)
-    assert not _clear({**ok, "zo_margin": None})  # no rival: nothing to be clear against
-    assert not _clear({**ok, "zo_margin": _CLEAR_MARGIN - 0.01})
-    assert not _clear({**ok, "zo_orientation": _ZO_ORIENT_CLIP - 0.1})
+    assert not _clear(dataclasses.replace(ok, zo_margin=None))  # no rival: nothing to be clear
+    assert not _clear(dataclasses.replace(ok, zo_margin=_CLEAR_MARGIN - 0.01))
+    assert not _clear(dataclasses.replace(ok, zo_orientation=_ZO_ORIENT_CLIP - 0.1))
 
 
 def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
@@ -1123,7 +1128,7 @@ def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkey
     assert tv["verify_search"] > 0
     assert tv["hypotheses"] <= tv["first_stage" if kept is staged else "verify_search"]
     # the other way: a first-stage map of higher defect gives way to the full search's
-    asked: list[dict] = []
+    asked: list[Hypothesis] = []
 
     def fake_defect(src, tgt, r):  # the first stage's map (asked first) reads the worse defect
         asked.append(r)
@@ -1189,15 +1194,15 @@ def test_fixed_share_of_identity_reflection_and_mixture(mirror_pair):
     s = tm.prepared._fps(S, 48)
     r = 0.05 * S.mesh.bbox_diagonal()
     share = tm.refine._fixed_share
-    assert share({"g": s}, V, r, s) == 1.0
+    assert share(s, V, r, s) == 1.0
     refl = torch.as_tensor(mp)[s]
     near_plane = float(np.mean(2 * np.abs(V[s.numpy(), 1]) <= r))
-    assert share({"g": refl}, V, r, s) == pytest.approx(near_plane)
+    assert share(refl, V, r, s) == pytest.approx(near_plane)
     assert near_plane < 0.5
     mix = torch.where(torch.arange(48) < 24, s, refl)  # half identity, half reflection
     half = float(np.mean(2 * np.abs(V[s.numpy()[24:], 1]) <= r))
-    assert share({"g": mix}, V, r, s) == pytest.approx(0.5 + 0.5 * half)
-    assert not tm.refine._is_identity({"g": refl}, V, r, s)
+    assert share(mix, V, r, s) == pytest.approx(0.5 + 0.5 * half)
+    assert not tm.refine._is_identity(refl, V, r, s)
 
 
 def test_match_across_resolutions():

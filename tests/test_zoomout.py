@@ -222,6 +222,7 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
     from test_matching import mirror_mesh, mirror_permutation
 
     from torchheat.matching.pipeline import _symmetries_at
+    from torchheat.matching.refine import Hypothesis
     from torchheat.matching.select import _spectral_choice
 
     V, F = mirror_mesh(3)
@@ -231,22 +232,22 @@ def test_a_mirror_hypothesis_alone_yields_its_direct_partner(mirror, descriptor)
     T.hk = T.hk.with_times(S.hk.times)
     samples = _fps(S, 48)
     swap = torch.as_tensor(perm[mp])  # source x -> copy of its mirror image
-    pool = [{"lms0": [], "g": swap[samples], "energy": 1.0, "orientation": -1.0}]
+    pool = [Hypothesis(lms0=[], g=swap[samples], energy=1.0, orientation=-1.0)]
     opt = _default_options(mirror_hypothesis=mirror, descriptor_seed=descriptor)
     direct, _, diag = _spectral_choice(
         S, T, samples, pool, opt, {},
         lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
                                         opt.refine_log_floor))
-    truth = torch.as_tensor(perm)[direct["zo"].rows]
-    right = float((direct["zo"].images == truth).float().mean())
+    truth = torch.as_tensor(perm)[direct.zo.rows]
+    right = float((direct.zo.images == truth).float().mean())
     if descriptor:
-        assert right > 0.95 and direct["zo_orientation"] > 0.5
-        assert direct.get("descriptor_seed") is True
+        assert right > 0.95 and direct.zo_orientation > 0.5
+        assert direct.descriptor_seed is True
     elif mirror:
-        assert right > 0.95 and direct["zo_orientation"] > 0.5
+        assert right > 0.95 and direct.zo_orientation > 0.5
         assert len(diag) >= 2  # the mirror map and its partner(s)
     else:
-        assert right < 0.5 and direct["zo_orientation"] < 0  # the mirror map stays
+        assert right < 0.5 and direct.zo_orientation < 0  # the mirror map stays
 
 
 def test_tear_reads_a_swap_of_two_parts_and_not_a_rigid_motion(spot_pair):
@@ -275,6 +276,7 @@ def test_tear_reads_a_swap_of_two_parts_and_not_a_rigid_motion(spot_pair):
 
 def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
     from torchheat.matching.quality import AMBIGUOUS_BELOW
+    from torchheat.matching.refine import Hypothesis
     from torchheat.matching.select import _rival
     from torchheat.matching.zoomout import ZoomOutResult
 
@@ -286,13 +288,13 @@ def test_margin_is_the_gap_to_the_best_different_map(spot_pair):
     near[:10] = shifted[:10]  # the same map but for 10 samples: not a rival
 
     def cand(images, s):
-        return {"zo": ZoomOutResult(rows, images, torch.eye(3), 1.0), "s": s}
+        return Hypothesis(zo=ZoomOutResult(rows, images, torch.eye(3), 1.0), zo_score=s)
 
     chosen = cand(right, -4.0)
     cands = [chosen, cand(near, -3.99), cand(shifted, -3.7), cand(shifted, -3.2)]
-    gap, rival = _rival(chosen, cands, lambda r: r["s"], T)
+    gap, rival = _rival(chosen, cands, lambda r: r.zo_score, T)
     assert gap == pytest.approx(0.3) and rival is cands[2]  # the best of the two rivals
-    assert _rival(chosen, cands[:2], lambda r: r["s"], T) == (None, None)  # no rival
+    assert _rival(chosen, cands[:2], lambda r: r.zo_score, T) == (None, None)  # no rival
     q = map_quality(S, T, perm, margin=0.1)
     assert q.ambiguous == (0.1 < AMBIGUOUS_BELOW) and not q.suspect
     assert not map_quality(S, T, perm).ambiguous  # no margin: never ambiguous

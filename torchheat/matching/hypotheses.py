@@ -92,15 +92,16 @@ class _Hypotheses:
 
         ``self_match`` (a shape against itself): the identity (energy 0) appears once per
         seed; one is kept, so that the pruning does not crowd out the symmetric hypotheses.
-        Returns the refined hypotheses (``{"lms0", "g", "energy", "orientation"}``) and, for
-        the diagnostics, every hypothesis ``(landmarks, energy, orientation)`` (the pruned
-        ones with their round-1 energy and no orientation) with its sample images.
+        Returns the refined hypotheses (:class:`.refine.Hypothesis`: ``lms0, g, energy,
+        orientation``) and, for the diagnostics, every hypothesis ``(landmarks, energy,
+        orientation)`` (the pruned ones with their round-1 energy and no orientation) with its
+        sample images.
         """
         opt = self.opt
         if self_match:
             Vs, _ = self.src.mesh.numpy()
             radius = 0.05 * self.src.mesh.bbox_diagonal()
-            ident = [_is_identity({"g": s_[3]}, Vs, radius, self.samples) for s_ in stage]
+            ident = [_is_identity(s_[3], Vs, radius, self.samples) for s_ in stage]
             first = ident.index(True) if any(ident) else -1
             stage = [s_ for i, s_ in enumerate(stage) if not ident[i] or i == first]
         keep = len(stage) if opt.refine_keep is None else max(1, int(opt.refine_keep))
@@ -112,7 +113,7 @@ class _Hypotheses:
             hyp_images.append(g0)
         for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
             g, energy, o = self.refined(g0, max(opt.refine_iterations - 1, 1))
-            results.append({"lms0": lms0, "g": g, "energy": energy, "orientation": o})
+            results.append(Hypothesis(lms0=lms0, g=g, energy=energy, orientation=o))
             hypotheses.append((lms0 or ["descriptor map"], energy, o))
             hyp_images.append(g)
         return results, hypotheses, hyp_images

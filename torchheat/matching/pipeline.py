@@ -539,7 +539,7 @@ def match(
         search = None  # method="refine": which search gave the map
         if method == "paper":
             direct, sym = _paper_maps(src, tgt, p, cands, p2, landmarks, use_hks, engine)
-            hypotheses = [(r["landmarks"], r["energy"], None) for r in (direct, sym)
+            hypotheses = [(r.landmarks, r.energy, None) for r in (direct, sym)
                           if r is not None]
             timings["dense_map"] = time.perf_counter() - t0
         else:
@@ -575,14 +575,15 @@ def match(
     if tgt is src:
         # a shape against itself: its direct (orientation-preserving) self-map is the identity,
         # exactly; the refined hypotheses only approach it (a TOSCA cat: 99.4 % of vertices)
-        direct = {**direct, "map": torch.arange(src.n) if final_map else None,
-                  "landmarks": [(int(a), int(a)) for a, _ in direct["landmarks"]]}
+        direct = dataclasses.replace(
+            direct, map=torch.arange(src.n) if final_map else None,
+            landmarks=[(int(a), int(a)) for a, _ in direct.landmarks])
     timings["total"] = time.perf_counter() - t_start
     # orientation of the direct map as measured where it is clear (the ZoomOut map), else on
     # the dense map when the quality is first asked for
-    o_dir = direct.get("zo_orientation") if method == "refine" else None
+    o_dir = direct.zo_orientation if method == "refine" else None
 
-    margin = direct.get("zo_margin") if method == "refine" else None
+    margin = direct.zo_margin if method == "refine" else None
 
     def quality(corr: Correspondence) -> MapQuality:
         return map_quality(src, tgt, corr.map, o_dir,
@@ -590,24 +591,25 @@ def match(
 
     return Correspondence(
         **_numbering(src, tgt),
-        map=direct["map"],
-        landmarks=direct["landmarks"],
+        map=direct.map,
+        landmarks=direct.landmarks,
         candidates=cands,
         scores=scores,
-        symmetric_map=None if sym is None else sym["map"],
-        symmetric_landmarks=None if sym is None else sym["landmarks"],
+        symmetric_map=None if sym is None else sym.map,
+        symmetric_landmarks=None if sym is None else sym.landmarks,
         orientation=orient,
         quality=quality if final_map else None,
-        rival_map=direct.get("rival_map") if method == "refine" else None,
+        rival_map=direct.rival_map if method == "refine" else None,
         info={"timings": timings, "method": method, "p": p, "hypotheses": hypotheses,
               "n_target": tgt.n, "zoomout": bool(zoomout and method == "refine"),
               "fine_k": fine_k,
               # an ambiguous choice's descriptor errors (chosen, rival; _descriptor_tie_break)
-              "tie_break": direct.get("zo_tie_break") if method == "refine" else None,
+              "tie_break": direct.zo_tie_break if method == "refine" else None,
               "hypothesis_images": hyp_images, "refine_samples": samples, "search": search,
               "zoomout_candidates": zo_diag,
-              "sym_orientation": None if sym is None else sym.get("orientation"),
-              "lms0_sym": None if sym is None else sym.get("lms0", sym.get("landmarks")),
+              "sym_orientation": None if sym is None else sym.orientation,
+              "lms0_sym": None if sym is None else (
+                  sym.landmarks if sym.lms0 is None else sym.lms0),
               "partial": None if part is None and unit_ratio is None else {
                   "ratio": part.ratio if part is not None else unit_ratio,
                   "scale": "piece" if part is not None else "unit",
@@ -628,16 +630,17 @@ def _paper_maps(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Ten
                 ) -> tuple[Hypothesis, Hypothesis | None]:
     """``method="paper"``: the dense maps of the two best distinct candidates of ``p`` (each
     expanded with the twin landmark ``p2`` when there is one), completed to ``landmarks``
-    landmark pairs by the paper's greedy search; ``{"landmarks", "map", "energy"}`` of the
-    direct (best) and symmetric (next) map, the latter None if there is a single candidate."""
+    landmark pairs by the paper's greedy search; the :class:`.refine.Hypothesis` (``landmarks,
+    map, energy``) of the direct (best) and symmetric (next) map, the latter None if there is a
+    single candidate."""
     hyp = _seed_landmarks(src, tgt, p, cands, p2, use_hks, 2, expand_top=2)[:2]
     results = []
     for lms in hyp:
         if len(lms) < landmarks:
             lms = _greedy_landmarks(src, tgt, lms, landmarks, use_hks, engine)
         fmap, dist = dense_map(src, tgt, lms, use_hks=use_hks, engine=engine)
-        results.append({"landmarks": lms, "map": fmap,
-                        "energy": float((dist.double() ** 2).mean())})
+        results.append(Hypothesis(landmarks=lms, map=fmap,
+                                  energy=float((dist.double() ** 2).mean())))
     return results[0], (results[1] if len(results) > 1 else None)
 
 
@@ -727,11 +730,11 @@ _VERIFY_DEFECT = 0.2
 
 def _defect(src: PreparedShape, tgt: PreparedShape, r: Hypothesis) -> float:
     """Isometry defect of a chosen map's dense map (computed here if deferred; both kept)."""
-    if "defect" not in r:
-        if callable(r["map"]):
-            r["map"] = r["map"]()
-        r["defect"] = map_quality(src, tgt, r["map"], orientation=0.0).defect
-    return r["defect"]
+    if r.defect is None:
+        if callable(r.map):
+            r.map = r.map()
+        r.defect = map_quality(src, tgt, r.map, orientation=0.0).defect
+    return r.defect
 
 
 def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
@@ -754,7 +757,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     results, hypotheses, hyp_images = hs.refine_kept(stage, forced, tgt is src)
     timings["hypotheses"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    by_energy = sorted(results, key=lambda r: r["energy"])
+    by_energy = sorted(results, key=lambda r: r.energy)
     best = by_energy[0]
     # The best refined hypothesis is a good map, but it may be the mirror one: the
     # true image of a limb-tip landmark and its mirror tip score alike. Its mirror
@@ -763,17 +766,17 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     mirror = None
     if opt.mirror_hypothesis and tgt is not src:
         bg.wait()  # the self-symmetry, if it was computed in the background
-        sig = _symmetry_at(tgt, best["g"], opt.use_hks, opt.engine, opt.n_candidates,
+        sig = _symmetry_at(tgt, best.g, opt.use_hks, opt.engine, opt.n_candidates,
                            opt.refine_log_floor)
         if sig is not None:
             g2, e2, o2 = hs.refined(sig, opt.refine_iterations)
-            mirror = {"lms0": best["lms0"], "g": g2, "energy": e2, "orientation": o2}
+            mirror = Hypothesis(lms0=best.lms0, g=g2, energy=e2, orientation=o2)
             hypotheses.append((["mirror of best"], e2, o2))
             hyp_images.append(g2)
     direct, sym, zo_diag = _choose(src, tgt, hs, by_energy, mirror, opt, timings, memo,
                                    hypotheses, hyp_images)
     _dense_maps(src, tgt, hs, direct, sym, opt, timings)
-    orient = direct.get("zo_orientation", direct["orientation"])
+    orient = direct.orientation if direct.zo_orientation is None else direct.zo_orientation
     timings["dense_map"] = time.perf_counter() - t0
     return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,
             "hyp_images": hyp_images, "samples": hs.samples, "zo_diag": zo_diag,
@@ -836,16 +839,16 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
         # a shape against itself: the identity is a perfect map of energy ~0, so the
         # energy reference for the other self-maps is the best non-identity one
         others = [r for r in by_energy
-                  if not _is_identity(r, Vs, 0.05 * diam_s, samples)]
+                  if not _is_identity(r.g, Vs, 0.05 * diam_s, samples)]
         if others:
             ref = others[0]
     good = [r for r in pool_r if r is best or opt.mirror_energy_ratio is None
-            or r["energy"] <= opt.mirror_energy_ratio * ref["energy"]]
+            or r.energy <= opt.mirror_energy_ratio * ref.energy]
     w = opt.orientation_weight if opt.orientation else 0.0
     zo_diag: list = []
 
     def logE(r: Hypothesis) -> float:
-        return math.log(max(r["energy"], 1e-300))
+        return math.log(max(r.energy, 1e-300))
 
     if opt.zoomout and tgt is not src and opt.partial_ratio is None:
         direct, sym, zo_diag = _spectral_choice(
@@ -855,23 +858,23 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             polish=(lambda g0: refiner.augment(g0, samples, opt.refine_iterations)[1])
             if opt.polished else None)
     else:
-        descr = [r for r in good if not r["lms0"]] if opt.partial_ratio is not None else []
+        descr = [r for r in good if not r.lms0] if opt.partial_ratio is not None else []
         if descr and len(good) > 1:
             # a piece: energies of one-point maps with small times hardly tell right from
             # wrong; agreeing with the landmark-free map where it is right does (see
             # _PARTIAL_AGREE); the landmark-free map itself does not compete (coarse)
             for r in good:
-                r["agree_descr"] = _agreement(tgt, r["g"], descr[0]["g"])
+                r.agree_descr = _agreement(tgt, r.g, descr[0].g)
             direct = min((r for r in good if r is not descr[0]),
-                         key=lambda r: logE(r) - w * r["orientation"]
-                         - _PARTIAL_AGREE * r["agree_descr"])
+                         key=lambda r: logE(r) - w * r.orientation
+                         - _PARTIAL_AGREE * r.agree_descr)
         else:
-            direct = min(good, key=lambda r: logE(r) - w * r["orientation"])
+            direct = min(good, key=lambda r: logE(r) - w * r.orientation)
         rest = [r for r in good if r is not direct]
         if tgt is src:  # self-maps: the symmetric map is never the identity
-            rest = [r for r in rest if not _is_identity(r, Vs, 0.05 * diam_s, samples)]
-        if opt.orientation and any(r["orientation"] < 0 for r in rest):
-            rest = [r for r in rest if r["orientation"] < 0]
+            rest = [r for r in rest if not _is_identity(r.g, Vs, 0.05 * diam_s, samples)]
+        if opt.orientation and any(r.orientation < 0 for r in rest):
+            rest = [r for r in rest if r.orientation < 0]
         elif opt.orientation and tgt is not src:
             rest = []
         if opt.zoomout and opt.descriptor_seed and tgt is src and opt.partial_ratio is None:
@@ -880,23 +883,23 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             t_d = time.perf_counter()
             alt = _descriptor_symmetry(src, rows, pos, tri, samples, refiner, opt)
             timings["descriptor_seed"] = time.perf_counter() - t_d
-            hypotheses.append((["descriptor map"], alt["energy"], alt["orientation"]))
-            hyp_images.append(alt["g"])
+            hypotheses.append((["descriptor map"], alt.energy, alt.orientation))
+            hyp_images.append(alt.g)
             # it must read a clear reversal, as a direct candidate must read >= 0.3 (measured:
             # a near-identity mixture reading -0.19 won by its low energy on victoria12)
-            if not opt.orientation or alt["orientation"] <= -_DESCR_DIRECT:
+            if not opt.orientation or alt.orientation <= -_DESCR_DIRECT:
                 rest.append(alt)
         def sym_score(r: Hypothesis) -> float:
-            s_ = logE(r) + w * r["orientation"]
+            s_ = logE(r) + w * r.orientation
             if tgt is src and opt.fixed_weight:  # a reflection fixes only a band
-                s_ += opt.fixed_weight * _fixed_share(r, Vs, 0.05 * diam_s, samples)
+                s_ += opt.fixed_weight * _fixed_share(r.g, Vs, 0.05 * diam_s, samples)
             return s_
 
         sym = min(rest, key=sym_score) if rest else None
         if opt.zoomout and sym is not None and tgt is src and opt.final_map:
             # a self-map: refine the symmetric (for its dense map only; the target's
             # self-symmetry behind the mirror hypotheses asks for none)
-            sym["zo"] = _zoomout_final(src, tgt, samples, sym["g"], opt)
+            sym.zo = _zoomout_final(src, tgt, samples, sym.g, opt)
         if opt.zoomout and opt.partial_ratio is not None:
             # a piece: chosen by energy and orientation (a small piece's few modes do not
             # tell hypotheses apart: measured, the ZoomOut choice lost right maps of pieces
@@ -905,7 +908,7 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             t_zo = time.perf_counter()
             for r in (direct, sym):
                 if r is not None:
-                    r["zo"] = _zoomout_final(src, tgt, samples, r["g"], opt)
+                    r.zo = _zoomout_final(src, tgt, samples, r.g, opt)
             timings["zoomout"] = time.perf_counter() - t_zo
     return direct, sym, zo_diag
 
@@ -914,31 +917,29 @@ def _dense_maps(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, direct:
                 sym: dict | None, opt: _Options, timings: dict) -> None:
     """The chosen maps' dense maps (``"map"``, computed when first asked for), landmarks
     (``"landmarks"``: the hypothesis' own, then the samples and their images) and, for two
-    whole shapes, the dense map of the margin's rival (``direct["rival_map"]``)."""
+    whole shapes, the dense map of the margin's rival (``direct.rival_map``)."""
     samples, refiner = hs.samples, hs.refiner
     for r in (direct, sym):
         if r is None:
             continue
         # the dense map, computed when first asked for (Correspondence)
         if not opt.final_map:
-            r["map"] = None
-        elif "zo" in r and opt.partial_ratio is not None:
-            r["map"] = _dense_partial_guarded(src, tgt, r, refiner, opt,
-                                              expect=1 if r is direct else -1, timings=timings)
-        elif "zo" in r:
-            r["map"] = _dense_spectral(src, tgt, r["zo"].C, opt.num_threads, timings,
-                                       fine_k=opt.fine_k)
+            r.map = None
+        elif r.zo is not None and opt.partial_ratio is not None:
+            r.map = _dense_partial_guarded(src, tgt, r, refiner, opt,
+                                           expect=1 if r is direct else -1, timings=timings)
+        elif r.zo is not None:
+            r.map = _dense_spectral(src, tgt, r.zo.C, opt.num_threads, timings,
+                                    fine_k=opt.fine_k)
         else:
-            r["map"] = _dense_final(refiner, r["g"], opt.num_threads, timings)
-        r["landmarks"] = list(r["lms0"]) + [
-            (int(a), int(b)) for a, b in zip(samples.tolist(), r["g"].tolist(),
-                                             strict=True)
+            r.map = _dense_final(refiner, r.g, opt.num_threads, timings)
+        r.landmarks = list(r.lms0) + [
+            (int(a), int(b)) for a, b in zip(samples.tolist(), r.g.tolist(), strict=True)
         ]
-    rival = direct.get("zo_rival")
+    rival = direct.zo_rival
     if rival is not None and opt.final_map and opt.partial_ratio is None:
         # the best different whole map (the margin's rival), at the choice's size
-        direct["rival_map"] = _dense_spectral(src, tgt, rival["zo"].C, opt.num_threads,
-                                              timings)
+        direct.rival_map = _dense_spectral(src, tgt, rival.zo.C, opt.num_threads, timings)
 
 
 #: A piece's hypotheses are scored ``log(energy) - orientation_weight * orientation -
@@ -1022,7 +1023,7 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
             g = corr.info["hypothesis_images"][i]
             if not (o < 0) or not torch.equal(S, out[0]):
                 continue
-            if _is_identity({"g": g}, V, radius, S):
+            if _is_identity(g, V, radius, S):
                 continue
             if _agree(V, g, out[1], radius) >= _ZO_SAME:
                 continue

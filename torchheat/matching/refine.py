@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, TypedDict
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -26,61 +27,70 @@ if TYPE_CHECKING:
 _REFINE_TIMES = slice(1, None, 2)  # every other time sample: half the dimensions, same span
 
 
-class Hypothesis(TypedDict, total=False):
+@dataclass(eq=False)
+class Hypothesis:
     """One whole map the refined pipeline considers, as it passes through the stages.
 
-    A plain dict at run time (copies are ``{**r, ...}``; the stages add keys as they go), typed
-    here so that every key is declared once. Seeding and refinement
-    (:mod:`.hypotheses`) give the first four; the ZoomOut choice (:mod:`.select`) the ``zo*``
-    keys and the kind flags; the dense stage (:mod:`.pipeline`) the outputs.
+    Seeding and refinement (:mod:`.hypotheses`) set the first four fields; the ZoomOut
+    choice (:mod:`.select`) the ``zo*`` fields and the kind flags; the dense stage
+    (:mod:`.pipeline`) the outputs. A field left at ``None`` was not computed. Copies are
+    :func:`dataclasses.replace` (shallow); identity (``is``) tells candidates apart.
+
+    Examples
+    --------
+    >>> import dataclasses
+    >>> h = Hypothesis(lms0=[(0, 5)], g=torch.tensor([5, 7]), energy=0.1, orientation=0.9)
+    >>> twin = dataclasses.replace(h, trimmed=True)
+    >>> twin.trimmed, h.trimmed, twin.g is h.g
+    (True, False, True)
     """
 
     # --- seeding and refinement (correspondence augmentation on the refinement samples)
-    lms0: list[tuple[int, int]]
+    lms0: list[tuple[int, int]] | None = None
     """Starting landmark pairs ``(source, target)``; empty for landmark-free candidates."""
-    g: torch.Tensor
+    g: torch.Tensor | None = None
     """int64, (s,): target images of the refinement samples."""
-    energy: float
+    energy: float | None = None
     """Mean squared descriptor distance of the last refinement round (NaN: not refined)."""
-    orientation: float
+    orientation: float | None = None
     """Orientation score of the sample map (+1 direct, -1 mirror; :mod:`.orientation`)."""
-    descriptor_seed: bool
+    descriptor_seed: bool = False
     """Seeded by the landmark-free descriptor functional map (:mod:`.fmap`)."""
-    agree_descr: float
+    agree_descr: float | None = None
     """A piece's hypotheses: agreement with the landmark-free map (:mod:`.pipeline`)."""
     # --- the ZoomOut choice
-    zo: ZoomOutResult
+    zo: ZoomOutResult | None = None
     """Its ZoomOut to the choice's size (images of the ZoomOut rows, functional map)."""
-    zo_orientation: float
+    zo_orientation: float | None = None
     """Orientation read on the ZoomOut map (clearer than on the samples)."""
-    zo_tear: float
+    zo_tear: float | None = None
     """Share of torn neighbour pairs of the ZoomOut map (``select._Tear``)."""
-    zo_score: float
+    zo_score: float | None = None
     """Score before polishing (the copies kept as they were, ``select._spectral_choice``)."""
-    zo_margin: float | None
+    zo_margin: float | None = None
     """The chosen map: how much worse its best rival scored (None: no rival)."""
-    zo_rival: Hypothesis | None
+    zo_rival: Hypothesis | None = None
     """The chosen map: that rival (a different whole map)."""
-    zo_tie_break: tuple[float, float]
+    zo_tie_break: tuple[float, float] | None = None
     """An ambiguous choice: signature errors (chosen, rival), ``select._descriptor_tie_break``."""
-    reoriented: bool
+    reoriented: bool = False
     """A reoriented twin (``select._reoriented_candidates``)."""
-    trimmed: bool
+    trimmed: bool = False
     """An orientation-trimmed twin (``select._trimmed_candidates``)."""
-    polished: bool
+    polished: bool = False
     """Polished by correspondence augmentation before the choice (``select._polish_candidates``)."""
     # --- the chosen maps' outputs
-    map: torch.Tensor | Callable[[], torch.Tensor] | None
+    map: torch.Tensor | Callable[[], torch.Tensor] | None = None
     """int64, (n,): the dense map, or the function computing it on first access."""
-    landmarks: list[tuple[int, int]]
+    landmarks: list[tuple[int, int]] | None = None
     """The landmark pairs reported (:attr:`.Correspondence.landmarks`)."""
-    rival_map: Callable[[], torch.Tensor] | None
+    rival_map: Callable[[], torch.Tensor] | None = None
     """The dense map of ``zo_rival``, deferred (:attr:`.Correspondence.rival_map`)."""
-    defect: float
+    defect: float | None = None
     """``verify_stage``: the dense map's quality defect (``pipeline._defect``)."""
-    partial_dense: str
+    partial_dense: str | None = None
     """A piece: which dense map was kept, ``"heat kernel"`` or ``"zoomout"``."""
-    partial_dense_quality: dict[str, float]
+    partial_dense_quality: dict[str, float] | None = None
     """A piece: the partial quality of both dense maps."""
 
 
@@ -208,13 +218,13 @@ def _agree(V: np.ndarray, a: torch.Tensor, b: torch.Tensor, radius: float) -> fl
     return float(np.mean(np.linalg.norm(V[a.numpy()] - V[b.numpy()], axis=1) <= radius))
 
 
-def _fixed_share(r: Hypothesis, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
+def _fixed_share(g: torch.Tensor, V: np.ndarray, radius: float, samples: torch.Tensor) -> float:
     """Share of the samples that a self-map hypothesis leaves in place: images within
-    ``radius`` (Euclidean) of themselves."""
-    return _agree(V, r["g"], samples, radius)
+    ``radius`` (Euclidean) of themselves (``g``: the images of ``samples``)."""
+    return _agree(V, g, samples, radius)
 
 
-def _is_identity(r: Hypothesis, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
+def _is_identity(g: torch.Tensor, V: np.ndarray, radius: float, samples: torch.Tensor) -> bool:
     """Whether a refined self-map hypothesis is (mostly) the identity: most samples land
     within ``radius`` of themselves (its starting landmarks may not say so)."""
-    return _fixed_share(r, V, radius, samples) > 0.5
+    return _fixed_share(g, V, radius, samples) > 0.5

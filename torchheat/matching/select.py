@@ -15,6 +15,7 @@ The chosen maps are refined to every mode and made dense when first asked for.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -52,8 +53,8 @@ def _distinct_hypotheses(pool: list[Hypothesis], Vt: np.ndarray, radius: float, 
     """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
     of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
     out: list[Hypothesis] = []
-    for r in sorted(pool, key=lambda r: r["energy"]):
-        if all(_agree(Vt, r["g"], o["g"], radius) < _ZO_SAME for o in out):
+    for r in sorted(pool, key=lambda r: r.energy):
+        if all(_agree(Vt, r.g, o.g, radius) < _ZO_SAME for o in out):
             out.append(r)
         if len(out) >= limit:
             break
@@ -139,15 +140,15 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     memo = {} if memo is None else memo
 
     def score(r: Hypothesis, sign: float) -> float:
-        o = min(sign * r["zo_orientation"], _ZO_ORIENT_CLIP)
+        o = min(sign * r.zo_orientation, _ZO_ORIENT_CLIP)
         return _base_score(r, tear) - w * o
 
     with threads(opt.num_threads):
         for r in cands:
-            zo = _memo_zoomout(memo, phi_s, phi_t, samples, r["g"], rows, k_start=_ZO_START_K,
+            zo = _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
-            r["zo"] = zo
-            r["zo_orientation"] = orient(zo.images)
+            r.zo = zo
+            r.zo_orientation = orient(zo.images)
         # positions of the refinement samples among the rows (None if a sample is not a row)
         at = pos[samples] if bool((pos[samples] >= 0).all()) else None
         if opt.mirror_hypothesis and opt.orientation and at is not None:
@@ -160,7 +161,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             timings["descriptor_seed"] = time.perf_counter() - t_d
         if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
-            parents = [r for r in cands if r["zo_orientation"] > 0]
+            parents = [r for r in cands if r.zo_orientation > 0]
             cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
                                          targets, orient, memo)
             timings["zoomout_trim"] = time.perf_counter() - t_t
@@ -172,41 +173,40 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         before: list[dict] = []  # candidates polishing changed or dropped, as they were
         if polish is not None and at is not None:
             t_p = time.perf_counter()
-            before = [{**r, "zo_score": score(r, 1.0)} for r in cands]
+            before = [dataclasses.replace(r, zo_score=score(r, 1.0)) for r in cands]
             cands = _polish_candidates(src, tgt, rows, at, samples, cands,
                                        lambda r: score(r, 1.0), polish, k_sel, targets,
                                        orient, memo)
-            kept = {id(r["zo"]) for r in cands}
-            before = [b for b in before if id(b["zo"]) not in kept]
+            kept = {id(r.zo) for r in cands}
+            before = [b for b in before if id(b.zo) not in kept]
             timings["zoomout_polish"] = time.perf_counter() - t_p
 
     direct = min(cands, key=lambda r: score(r, 1.0))
     # the margin: to the best different whole map, polished or as it was before (a choice
     # that polishing overturned, or that a rival lost only by polishing, is not clear)
-    margin, direct["zo_rival"] = _rival(
-        direct, cands + before, lambda r: r["zo_score"] if "zo_score" in r else score(r, 1.0),
+    margin, direct.zo_rival = _rival(
+        direct, cands + before, lambda r: score(r, 1.0) if r.zo_score is None else r.zo_score,
         tgt)
-    direct["zo_margin"] = None if margin is None else max(margin, 0.0)
-    if (opt.tie_break and direct["zo_rival"] is not None
-            and direct["zo_margin"] < AMBIGUOUS_BELOW):
+    direct.zo_margin = None if margin is None else max(margin, 0.0)
+    if (opt.tie_break and direct.zo_rival is not None
+            and direct.zo_margin < AMBIGUOUS_BELOW):
         direct = _descriptor_tie_break(src, tgt, rows, direct)
     rest = [r for r in cands if r is not direct
-            and (not opt.orientation or r["zo_orientation"] < 0)]
+            and (not opt.orientation or r.zo_orientation < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
     # diagnostics: (rows, images, residual, orientation, chosen, landmark-free, tear, kind,
     # polished) of every ZoomOut candidate, and of the chosen one when the tie-break took a
     # rival as it was before polishing (one of ``before``, not in ``cands``)
     listed = cands + ([] if any(r is direct for r in cands) else [direct])
-    diag = [(r["zo"].rows, r["zo"].images, r["zo"].residual, r["zo_orientation"], r is direct,
-             bool(r.get("descriptor_seed")), r.get("zo_tear", float("nan")),
-             "reoriented" if r.get("reoriented") else "trimmed" if r.get("trimmed") else "",
-             bool(r.get("polished")))
+    diag = [(r.zo.rows, r.zo.images, r.zo.residual, r.zo_orientation, r is direct,
+             r.descriptor_seed, float("nan") if r.zo_tear is None else r.zo_tear,
+             "reoriented" if r.reoriented else "trimmed" if r.trimmed else "", r.polished)
             for r in listed]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for r in (direct, sym):
         if r is not None and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9):
-            r["zo"] = _zoomout_final(src, tgt, rows, r["zo"].images, opt, k_start=k_sel)
+            r.zo = _zoomout_final(src, tgt, rows, r.zo.images, opt, k_start=k_sel)
     timings["zoomout"] = time.perf_counter() - t0
     return direct, sym, diag
 
@@ -221,7 +221,7 @@ _CLEAR_MARGIN = 0.75
 def _clear(direct: Hypothesis) -> bool:
     """Whether a first-stage choice is clear enough to skip the full search (see
     ``_CLEAR_MARGIN``); a choice without a rival is not."""
-    return _clear_choice(direct.get("zo_margin"), direct.get("zo_orientation"))
+    return _clear_choice(direct.zo_margin, direct.zo_orientation)
 
 
 def _clear_choice(margin: float | None, orientation: float | None) -> bool:
@@ -264,10 +264,10 @@ class _Tear:
 def _base_score(r: Hypothesis, tear: _Tear) -> float:
     """``log(residual) + tear.weight * tear`` of a ZoomOut candidate (the tear memoised)."""
     if not tear.weight:
-        return math.log(max(r["zo"].residual, 1e-300))
-    if "zo_tear" not in r:
-        r["zo_tear"] = tear(r["zo"].images)
-    return math.log(max(r["zo"].residual, 1e-300)) + tear.weight * r["zo_tear"]
+        return math.log(max(r.zo.residual, 1e-300))
+    if r.zo_tear is None:
+        r.zo_tear = tear(r.zo.images)
+    return math.log(max(r.zo.residual, 1e-300)) + tear.weight * r.zo_tear
 
 
 _REORIENT_TOP = 4  # candidates of least log(residual) + tear that get a reoriented twin
@@ -297,7 +297,7 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     k0 = min(_REORIENT_K, k_sel)
     out: list[Hypothesis] = []
     for r in top:
-        im = r["zo"].images
+        im = r.zo.images
         def twin(im: torch.Tensor = im) -> ZoomOutResult:
             C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS],
                                         im[:_REORIENT_POINTS], k=k0, memo=memo)
@@ -306,10 +306,10 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
                                  k_end=k_sel, targets=targets)
 
         zo = _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0), twin)
-        new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "reoriented": True}
-        new.pop("zo_tear", None)
+        new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), reoriented=True)
+        new.zo_tear = None  # the tear is the twin's own
         if at_samples is not None:
-            new["g"] = zo.images[at_samples]
+            new.g = zo.images[at_samples]
         out.append(new)
     return out
 
@@ -340,16 +340,15 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     leaders: list[torch.Tensor] = []  # ZoomOut images of the maps polished so far
     dropped: set[int] = set()
     for r in sorted((r for r in cands if score(r) <= best + _CLEAR_MARGIN), key=score):
-        if any(_agree(Vt, r["zo"].images, q, radius) >= _ZO_SAME for q in leaders):
+        if any(_agree(Vt, r.zo.images, q, radius) >= _ZO_SAME for q in leaders):
             dropped.add(id(r))
             continue
-        leaders.append(r["zo"].images)
-        g = polish(r["zo"].images[at_samples])
+        leaders.append(r.zo.images)
+        g = polish(r.zo.images[at_samples])
         zo = _memo_zoomout(memo, phi_s, phi_t, samples, g, rows, k_start=_ZO_START_K,
                            k_end=k_sel, targets=targets)
-        r.update(zo=zo, zo_orientation=orient(zo.images), g=zo.images[at_samples],
-                 polished=True)
-        r.pop("zo_tear", None)
+        r.zo, r.zo_orientation, r.g = zo, orient(zo.images), zo.images[at_samples]
+        r.polished, r.zo_tear = True, None  # the tear is the new map's
     return [r for r in cands if id(r) not in dropped]
 
 
@@ -366,7 +365,7 @@ def _log_wks(shape: PreparedShape, energies: np.ndarray, sigma: float) -> np.nda
 
 def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                           direct: Hypothesis) -> Hypothesis:
-    """The chosen candidate or its rival (``direct["zo_rival"]``), whichever maps the ZoomOut
+    """The chosen candidate or its rival (``direct.zo_rival``), whichever maps the ZoomOut
     ``rows`` onto points of more similar wave kernel signature (mean over rows and energies
     of ``|log WKS_M(x) - log WKS_N(f(x))|``, each shape's log-WKS centred; energies shared,
     log-spaced over both spectra).
@@ -379,7 +378,7 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     two in 7 of the 9 pairs where it differs from the score's choice by 20 points or more.
     The loser becomes the rival; the margin stays (the choice stays ambiguous).
     """
-    rival = direct["zo_rival"]
+    rival = direct.zo_rival
     lam = np.concatenate([src.hk.eigenvalues.double().numpy(),
                           tgt.hk.eigenvalues.double().numpy()])
     pos = lam[lam > 1e-8 * np.abs(lam).max()]
@@ -389,13 +388,14 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     Dt = _log_wks(tgt, energies, sigma)
 
     def error(r: Hypothesis) -> float:
-        return float(np.abs(Ds - Dt[r["zo"].images.numpy()]).mean())
+        return float(np.abs(Ds - Dt[r.zo.images.numpy()]).mean())
 
     e_direct, e_rival = error(direct), error(rival)
     if e_rival >= e_direct:
-        direct["zo_tie_break"] = (e_direct, e_rival)
+        direct.zo_tie_break = (e_direct, e_rival)
         return direct
-    rival.update(zo_margin=direct["zo_margin"], zo_rival=direct, zo_tie_break=(e_rival, e_direct))
+    rival.zo_margin, rival.zo_rival = direct.zo_margin, direct
+    rival.zo_tie_break = (e_rival, e_direct)
     return rival
 
 
@@ -414,7 +414,7 @@ def _rival(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothe
     radius = _RIVAL_RADIUS * math.sqrt(tgt.mesh.area())
     s0 = score(chosen)
     rivals = [r for r in cands if r is not chosen
-              and _agree(Vt, r["zo"].images, chosen["zo"].images, radius) < _RIVAL_AGREE]
+              and _agree(Vt, r.zo.images, chosen.zo.images, radius) < _RIVAL_AGREE]
     if not rivals:
         return None, None
     best = min(rivals, key=score)
@@ -448,7 +448,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     ``_TRIM_MIN`` rows or more than 99 % of them are kept. ``tri``: the orientation
     triangles of ``rows`` (:func:`~torchheat.matching.orientation._triangles`, one per row, in
     row order); ``at_samples``: positions of the refinement samples in ``rows`` (the twin's
-    ``"g"``; None keeps the parent's). Cost: one ZoomOut per parent (~0.1 s at 1000 rows,
+    ``g``; None keeps the parent's). Cost: one ZoomOut per parent (~0.1 s at 1000 rows,
     2000 targets, 16 -> 100 modes, one thread).
     """
     Vs, _ = src.mesh.numpy()
@@ -457,7 +457,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     phi_s, phi_t = _bases(src, tgt)
     out: list[Hypothesis] = []
     for r in parents:
-        images = r["zo"].images
+        images = r.zo.images
         sg = _orientation_signs(src, tgt, tri, lambda i, f=images: f[pos[i]].numpy())
         keep_np = sg[nb].mean(axis=1) > 0  # per row: its neighbourhood keeps the orientation
         if keep_np.sum() < _TRIM_MIN or keep_np.mean() >= 0.99:
@@ -465,9 +465,9 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         keep = torch.from_numpy(keep_np)
         zo = _memo_zoomout(memo, phi_s, phi_t, rows[keep], images[keep], rows,
                            k_start=_ZO_START_K, k_end=k_sel, targets=targets)
-        new = {**r, "zo": zo, "zo_orientation": orient(zo.images), "trimmed": True}
+        new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), trimmed=True)
         if at_samples is not None:  # its own images of the refinement samples
-            new["g"] = zo.images[at_samples]
+            new.g = zo.images[at_samples]
         out.append(new)
     return out
 
@@ -491,28 +491,28 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
     with the direct map missing (measured on the failing SCAPE and TOSCA michael pairs); the
     mirror map's partner is the direct map. Partners whose sample images agree with an
     existing candidate's (as in :func:`_distinct_hypotheses`) are dropped. ``at_samples``:
-    positions of the refinement samples in ``rows`` (the partners' ``"g"``).
+    positions of the refinement samples in ``rows`` (the partners' ``g``).
     """
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     phi_s, phi_t = _bases(src, tgt)
     out: list[Hypothesis] = []
     src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
-    for r in [c for c in cands if c["zo_orientation"] < _MIRROR_BELOW]:
+    for r in [c for c in cands if c.zo_orientation < _MIRROR_BELOW]:
         # sigma_N o T for each target symmetry
-        seeds = symmetries_at(tgt, r["zo"].images)
+        seeds = symmetries_at(tgt, r.zo.images)
         for ss in src_syms:  # T o sigma_M, read from T's functional map
-            j = spectral_map(phi_s, phi_t[targets], r["zo"].C, ss)[1]
+            j = spectral_map(phi_s, phi_t[targets], r.zo.C, ss)[1]
             seeds.append(targets[j])
         for seed in seeds:
             zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
-            if any(_agree(Vt, zo.images, o["zo"].images, radius) >= _ZO_SAME
+            if any(_agree(Vt, zo.images, o.zo.images, radius) >= _ZO_SAME
                    for o in cands + out):
                 continue
-            out.append({"lms0": [], "g": zo.images[at_samples], "zo": zo,
-                        "energy": float("nan"), "orientation": float("nan"),
-                        "zo_orientation": orient(zo.images)})
+            out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo,
+                                  energy=float("nan"), orientation=float("nan"),
+                                  zo_orientation=orient(zo.images)))
     return out
 
 
@@ -537,7 +537,7 @@ def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Te
     g0 = spectral_map(phi, phi, C, samples)[1]
     f_rows, g, energy = refiner.augment(g0, rows, max(opt.refine_iterations - 1, 1))
     o = _orientation(shape, shape, tri, lambda i: f_rows[pos[i]].numpy())
-    return {"lms0": [], "g": g, "energy": energy, "orientation": o, "descriptor_seed": True}
+    return Hypothesis(lms0=[], g=g, energy=energy, orientation=o, descriptor_seed=True)
 
 
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
@@ -562,19 +562,19 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
                        k_end=k_sel, targets=targets)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
-    agree = [_agree(Vt, zo.images, o["zo"].images, radius) for o in cands]
+    agree = [_agree(Vt, zo.images, o.zo.images, radius) for o in cands]
     if any(a >= _ZO_SAME for a in agree):
         return []
     # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
     # out: measured on TOSCA, such variants won at a lower ZoomOut residual while less right
     # (12 pairs: 95-100 % -> 63-93 %); where the descriptor map was the right one, no direct
     # landmark candidate agreed with it on more than 45 % of the samples
-    if any(o["zo_orientation"] >= _DESCR_DIRECT and a >= _DESCR_VARIANT
+    if any(o.zo_orientation >= _DESCR_DIRECT and a >= _DESCR_VARIANT
            for o, a in zip(cands, agree, strict=True)):
         return []
-    return [{"lms0": [], "g": zo.images[at_samples], "zo": zo, "energy": float("nan"),
-             "orientation": float("nan"), "zo_orientation": orient(zo.images),
-             "descriptor_seed": True}]
+    return [Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
+                       orientation=float("nan"), zo_orientation=orient(zo.images),
+                       descriptor_seed=True)]
 
 
 def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: Hypothesis, refiner: _Refiner,
@@ -586,14 +586,14 @@ def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: Hypothesis
     def compute() -> torch.Tensor:
         t0 = time.perf_counter()
         with threads(opt.num_threads):
-            maps = {"heat kernel": refiner.augment(r["g"], None, 1)[0],
-                    "zoomout": dense_partial_map(src, tgt, r["zo"].C, opt.num_threads)}
+            maps = {"heat kernel": refiner.augment(r.g, None, 1)[0],
+                    "zoomout": dense_partial_map(src, tgt, r.zo.C, opt.num_threads)}
         qual = {k: map_quality(src, tgt, m, expect=expect, ratio=opt.partial_ratio).quality
                 for k, m in maps.items()}
-        r["partial_dense"] = max(qual, key=lambda k: qual[k])
-        r["partial_dense_quality"] = qual
+        r.partial_dense = max(qual, key=lambda k: qual[k])
+        r.partial_dense_quality = qual
         timings["final_map"] = timings.get("final_map", 0.0) + time.perf_counter() - t0
-        return maps[r["partial_dense"]]
+        return maps[r.partial_dense]
 
     return compute
 
