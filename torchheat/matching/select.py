@@ -466,6 +466,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         zo = _memo_zoomout(memo, phi_s, phi_t, rows[keep], images[keep], rows,
                            k_start=_ZO_START_K, k_end=k_sel, targets=targets)
         new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), trimmed=True)
+        new.zo_tear = None  # the tear is the twin's own (parents are not scored yet here)
         if at_samples is not None:  # its own images of the refinement samples
             new.g = zo.images[at_samples]
         out.append(new)
