@@ -14,7 +14,7 @@ import shutil
 import sys
 import warnings
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -153,35 +153,19 @@ def _dask_batches(ex: Any, cfg: Mapping[str, Any], todo: list[PairTask]) -> Iter
     written by the shape tasks, read by the pair tasks: the folder must be shared), else
     through Dask's own data transfers (nothing written; held by the workers until the last
     pair of the shape is done)."""
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
     with_shapes = cfg["task"] == "match"
-    shared: dict[int, ShapeTask] = {}
+    pc, shared, uses = _shape_tasks(cfg, todo if with_shapes else [], cfg.get("cache"))
 
     def needs(t: PairTask) -> tuple[int, ...]:
         return tuple(dict.fromkeys(pc.pairs[t.index])) if with_shapes else ()
 
-    for t in todo:
-        for i in needs(t):
-            shared.setdefault(i, ShapeTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i,
-                                           pc.shapes.names[i], _freeze(cfg["prepare"]),
-                                           cfg.get("cache")))
-
     def name(x: Any) -> str:
         return f"pair-{x.name}" if isinstance(x, PairTask) else f"shape-{shared[x].name}"
 
-    uses: dict[str, int] = {}  # pending pairs per shape name
-    for t in todo:
-        for i in needs(t):
-            uses[shared[i].name] = uses.get(shared[i].name, 0) + 1
-
     def shared_out(rec: dict[str, Any]) -> dict[str, Any]:
-        # as the local shape phase: the pair's share of its shapes' tasks in time_prepare
-        share = sum(float(m.get("seconds", 0.0)) / uses.get(m["name"], 1)
-                    for m in rec.get("shapes") or ())
-        if share:
-            rec["time_shapes"] = share
-            rec["time_prepare"] = rec.get("time_prepare", 0.0) + share
-        return rec
+        metas = rec.get("shapes") or ()
+        seconds = {m["name"]: float(m.get("seconds", 0.0)) for m in metas}
+        return _with_shape_share(rec, _shape_share(list(seconds), seconds, uses))
 
     for batch in ex.map_shared(_dask_pair, todo, needs, _run_shape, shared, name=name):
         yield [_error_record(task, exc) if exc is not None else
@@ -296,6 +280,7 @@ def run(
         todo = [t for t in tasks if t.key not in by_key]
         todo.sort(key=_target_of)  # stable: consecutive pairs share the target's fields
         solves = _Eigensolves()
+        shares: dict[str, float] = {}  # pair key -> its share of the shape phase (local runs)
         dask_ex = _as_dask(executor)
         if executor is None and todo:
             if "dask" in cfg["executor"]:
@@ -322,8 +307,8 @@ def run(
                 pool = _AffinityPool(int(workers), initializer=_worker_init)
                 owned.callback(pool.shutdown, wait=True, cancel_futures=True)
                 if cfg["task"] == "match":
-                    todo = _solve_shapes_first(pool, cfg, todo, str(cfg.get("cache") or scratch),
-                                               solves, progress)
+                    todo, shares = _solve_shapes_first(
+                        pool, cfg, todo, str(cfg.get("cache") or scratch), solves, progress)
                 records = pool.run(_run_task, todo, key=_target_of)
             else:
                 records = _in_completion_order(executor, _run_task, todo)
@@ -339,6 +324,7 @@ def run(
                     tqdm.write(f"{rec['name']}: failed: {rec['error']}", file=sys.stderr)
                     bar.update(1)
                     continue
+                _with_shape_share(rec, shares.get(rec["key"], 0.0))
                 arrays = rec.pop("_arrays", None)
                 if arrays is not None:
                     atomic_write(out / "maps" / f"{rec['name']}.npz",
@@ -380,8 +366,42 @@ def _remove_when_done(folder: Path) -> Callable[..., bool]:
     return exit_
 
 
+def _shape_tasks(cfg: Mapping[str, Any], todo: list[PairTask], cache: str | None
+                 ) -> tuple[Any, dict[int, ShapeTask], dict[str, int]]:
+    """The config's pair collection (with ``cache``), one :class:`ShapeTask` per shape of the
+    pending pairs ``todo`` (by shape index, in order of first use) and how many of them use
+    each shape (by shape name)."""
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cache, cfg["prepare"])
+    tasks: dict[int, ShapeTask] = {}
+    uses: dict[str, int] = {}
+    for t in todo:
+        for i in dict.fromkeys(pc.pairs[t.index]):
+            st = tasks.setdefault(i, ShapeTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i,
+                                               pc.shapes.names[i], _freeze(cfg["prepare"]),
+                                               cache))
+            uses[st.name] = uses.get(st.name, 0) + 1
+    return pc, tasks, uses
+
+
+def _shape_share(names: Iterable[str], seconds: Mapping[str, float],
+                 uses: Mapping[str, int]) -> float:
+    """A pair's share of its shapes' preprocessing: each shape's seconds divided among the
+    pending pairs that use it (a shape without a time counts 0)."""
+    return sum(seconds.get(n, 0.0) / uses.get(n, 1) for n in names)
+
+
+def _with_shape_share(rec: dict[str, Any], share: float) -> dict[str, Any]:
+    """``rec`` with its shapes' preprocessing, run before the pairs, in its ``time_prepare``
+    (and as ``time_shapes``), so that "prepare + match" per pair counts every eigensolve."""
+    if share:
+        rec["time_shapes"] = share
+        rec["time_prepare"] = rec.get("time_prepare", 0.0) + share
+    return rec
+
+
 def _solve_shapes_first(pool: _AffinityPool, cfg: Mapping[str, Any], todo: list[PairTask],
-                        cache: str, solves: _Eigensolves, progress: bool) -> list[PairTask]:
+                        cache: str, solves: _Eigensolves, progress: bool
+                        ) -> tuple[list[PairTask], dict[str, float]]:
     """The shape phase of a local multi-worker ``match`` run: every shape of the pending
     pairs is prepared once (its eigensolve, written to the disk cache ``cache``: the config's
     own, else the run's scratch folder ``<output>/.eigenbases``, removed when the run
@@ -391,34 +411,25 @@ def _solve_shapes_first(pool: _AffinityPool, cfg: Mapping[str, Any], todo: list[
     Without it each worker solved every shape it met (the pairs of one target run on one
     worker, but its sources run on both): 141 eigensolves for TOSCA's 76 shapes, 43 for
     SCAPE 50's 20. The maps are the same (the workers solve with one thread either way, and a
-    cached eigenbasis is the solved one, bit for bit). Each pair's ``time_prepare`` carries
-    its share of its shapes' eigensolves (a shape's seconds divided among the pending pairs
-    that use it, also recorded as ``time_shapes``), so the per-pair times stay whole. A shape
-    that fails here is solved again, and its error reported, by its pairs."""
+    cached eigenbasis is the solved one, bit for bit). Also returned: each pending pair's
+    share of its shapes' seconds (:func:`_shape_share`, by pair key), which :func:`run` adds
+    to its record (:func:`_with_shape_share`). A shape that fails here is solved again, and
+    its error reported, by its pairs."""
     from tqdm import tqdm
 
-    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cache, cfg["prepare"])
-    uses: dict[int, int] = {}
-    for t in todo:
-        for i in dict.fromkeys(pc.pairs[t.index]):
-            uses[i] = uses.get(i, 0) + 1
-    shape_tasks = [ShapeTask(cfg["dataset"], _freeze(cfg["dataset_args"]), i,
-                             pc.shapes.names[i], _freeze(cfg["prepare"]), cache)
-                   for i in sorted(uses)]
+    pc, tasks, uses = _shape_tasks(cfg, todo, cache)
     seconds: dict[str, float] = {}
-    with tqdm(total=len(shape_tasks), file=sys.stderr, disable=not progress,
+    with tqdm(total=len(tasks), file=sys.stderr, disable=not progress,
               desc=f"{cfg['name']}: shapes", unit="shape", dynamic_ncols=True) as bar:
-        for res in pool.map_unordered(_run_shape, shape_tasks):
+        for res in pool.map_unordered(_run_shape, list(tasks.values())):
             meta = res.get("meta")
             if meta is not None:
                 seconds[res["name"]] = float(meta.get("seconds", 0.0))
                 solves.shapes[meta["id"]] = bool(meta.get("computed"))
             bar.update(1)
-    by_index = {st.index: seconds.get(st.name, 0.0) / uses[st.index] for st in shape_tasks}
-    return [dataclasses.replace(
-        t, cache=cache,
-        shape_share=sum(by_index[i] for i in dict.fromkeys(pc.pairs[t.index])))
-        for t in todo]
+    shares = {t.key: _shape_share([tasks[i].name for i in dict.fromkeys(pc.pairs[t.index])],
+                                  seconds, uses) for t in todo}
+    return [dataclasses.replace(t, cache=cache) for t in todo], shares
 
 
 class _Eigensolves:

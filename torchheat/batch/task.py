@@ -256,9 +256,6 @@ class PairTask:
     distortion: bool
     keep_map: bool
     cache: str | None = None
-    # this pair's share of the eigensolves run for its shapes before the pairs (a local
-    # multi-worker run, :func:`~torchheat.batch.runner._solve_shapes_first`), seconds
-    shape_share: float = 0.0
 
 
 def _freeze(d: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
@@ -286,9 +283,7 @@ def _run_task(task: PairTask, *shapes: Mapping[str, Any]) -> dict[str, Any]:
     """Executor entry point: load the pair, evaluate it; exceptions become error records.
 
     ``shapes``: the results of the pair's :class:`ShapeTask` s (Dask runs), whose eigenbases
-    are used instead of solving again. ``task.shape_share`` (local multi-worker runs, whose
-    shapes were solved before the pairs) is added to the record's ``time_prepare`` and kept
-    as ``time_shapes``."""
+    are used instead of solving again."""
     try:
         pc = _load_dataset(task.dataset, dict(task.dataset_args), task.cache, dict(task.prepare))
         pair = _pair_with_shapes(pc, task, shapes) if shapes else pc[task.index]
@@ -302,11 +297,6 @@ def _run_task(task: PairTask, *shapes: Mapping[str, Any]) -> dict[str, Any]:
     from ..datasets import host_id
 
     rec = {"key": task.key, "options_hash": task.options_hash, **rec, "host": host_id()}
-    if task.shape_share:
-        # the eigensolves ran once per shape before the pairs: each pair's preparation time
-        # carries its share of them, so that "prepare + match" per pair stays whole
-        rec["time_shapes"] = task.shape_share
-        rec["time_prepare"] = rec.get("time_prepare", 0.0) + task.shape_share
     if shapes:
         rec["shapes"] = [dict(s["meta"]) for s in shapes]
     return rec
