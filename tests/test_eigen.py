@@ -108,6 +108,63 @@ def test_worker_timeout_stops_it_and_returns_none():
         assert not bg._procs[0].is_alive()
 
 
+def test_worker_solves_on_while_its_results_wait_to_be_read(monkeypatch):
+    # a pipe holds 64 KB: a worker's next solve must not wait until the parent reads the last
+    # result (the parent reads only after ``import torch``); results go out from a thread
+    import threading
+
+    import threadpoolctl
+
+    monkeypatch.setattr(threadpoolctl, "threadpool_limits", lambda n: None)  # not this process
+    solved: list[int] = []
+    monkeypatch.setattr(eigen, "cotan_eigenpairs",
+                        lambda V, F, k: (solved.append(len(V)) or (np.zeros(k), V[:, :1])))
+    release, sent, closed = threading.Event(), [], []
+
+    class Conn:  # the parent not reading yet: every send blocks until released
+        def send(self, item):
+            assert release.wait(30)
+            sent.append(item[0])
+
+        def close(self):
+            closed.append(True)
+
+    jobs = [(i, np.zeros((10 + i, 3)), np.zeros((1, 3), dtype=np.int64), 4) for i in range(3)]
+    child = threading.Thread(target=eigen._solve_in_child, args=(Conn(), jobs))
+    child.start()
+    for _ in range(3000):  # all three solved while the first result is still unread
+        if len(solved) == 3:
+            break
+        threading.Event().wait(0.01)
+    assert solved == [10, 11, 12] and sent == []
+    release.set()
+    child.join(30)
+    assert sent == [0, 1, 2] and closed == [True]
+
+
+@linux
+def test_workers_nice_value_and_results():
+    import os
+
+    V, F = generic_sphere(5)  # 10k vertices, k = 100: still solving while polled
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    with EigenWorkers([(V, F)], k=100, processes=1, nice=5) as bg:
+        pid = bg._procs[0].pid
+        seen = base
+        for _ in range(500):
+            try:
+                seen = os.getpriority(os.PRIO_PROCESS, pid)
+            except OSError:  # already gone
+                break
+            if seen != base or not bg._procs[0].is_alive():
+                break
+            bg._procs[0].join(0.01)
+        got = bg.get(0)
+    assert seen == min(base + 5, 19)
+    lam, phi = cotan_eigenpairs(V, F, k=100)
+    assert np.allclose(got[0], lam, rtol=1e-10, atol=1e-9)
+
+
 def test_package_and_eigen_import_without_torch():
     # the command line starts its workers before torch is imported: keep these torch-free
     code = ("import sys, torchheat, torchheat.eigen, torchheat.meshio; "
