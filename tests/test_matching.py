@@ -790,6 +790,49 @@ def test_background_reraises_and_restores_threads():
             one.wait()
 
 
+def test_run_each_runs_every_job_on_one_torch_thread_each():
+    import threading
+
+    seen: list[tuple[int, int, str]] = []
+    lock = threading.Lock()
+
+    def job(i):
+        def run():
+            with lock:
+                seen.append((i, torch.get_num_threads(), threading.current_thread().name))
+        return run
+
+    with threads(2):
+        tm.background.run_each([job(i) for i in range(5)], 2)
+        assert torch.get_num_threads() == 2  # the caller's count is untouched
+    assert sorted(i for i, _, _ in seen) == list(range(5))
+    assert all(n == 1 and name.startswith("torchheat-job") for _, n, name in seen)
+    seen.clear()
+    tm.background.run_each([job(i) for i in range(3)], 1)  # one thread: in order, here
+    assert [(i, name) for i, _, name in seen] == [(0, "MainThread"), (1, "MainThread"),
+                                                  (2, "MainThread")]
+
+    def boom():
+        raise RuntimeError("in a job")
+
+    with pytest.raises(RuntimeError, match="in a job"):
+        tm.background.run_each([job(9), boom], 2)
+
+
+def test_background_running_flag():
+    import threading
+
+    done = threading.Event()
+    with threads(2):
+        bg = tm.background._Background()
+        assert not bg.running
+        bg.start(lambda: done.wait(30))
+        assert bg.running
+        done.set()
+        bg.wait()
+        assert not bg.running
+
+
 def test_descriptor_memo_keyed_by_times_and_dropped_after_match():
     V, F = generic_sphere(2, seed=4)
     S = prepare(Mesh(V, F))

@@ -80,6 +80,46 @@ def test_match_is_reproducible(spot_pair):
         z[2] for z in b.info["zoomout_candidates"]]
 
 
+def test_candidates_side_by_side_score_as_one_after_the_other(spot_pair, monkeypatch):
+    # with two torch threads the ZoomOut candidates run side by side, one thread each (and
+    # ahead of time while the self-symmetry runs in the background): every candidate's
+    # residual and images, and the maps, are the bits of a one-thread match
+    import threading
+
+    from torchheat.heat import threads
+    from torchheat.matching import select
+
+    S, T, perm = spot_pair
+    pools: list[tuple[int, int]] = []
+    ran_in: set[str] = set()
+    orig_run, orig_zo = select.run_each, select.zoomout
+
+    def run_spy(jobs, n):
+        pools.append((len(jobs), n))
+        return orig_run(jobs, n)
+
+    def zo_spy(*args, **kw):
+        ran_in.add(threading.current_thread().name.split("_")[0])
+        return orig_zo(*args, **kw)
+
+    monkeypatch.setattr(select, "run_each", run_spy)
+    monkeypatch.setattr(select, "zoomout", zo_spy)
+    out = {}
+    for n in (1, 2):
+        with threads(n):
+            Sn, Tn = prepare(Mesh(*S.mesh.numpy())), prepare(Mesh(*T.mesh.numpy()))
+            out[n] = match(Sn, Tn)
+            assert torch.get_num_threads() == n
+    assert any(n == 2 and k >= 2 for k, n in pools)  # side by side on two threads
+    assert "torchheat-job" in ran_in
+    one, two = out[1], out[2]
+    assert torch.equal(one.map, two.map) and torch.equal(one.map, perm)
+    za, zb = one.info["zoomout_candidates"], two.info["zoomout_candidates"]
+    assert len(za) == len(zb) > 1
+    for a, b in zip(za, zb, strict=True):
+        assert torch.equal(a[1], b[1]) and a[2] == b[2]  # images, residual: the same bits
+
+
 def test_zoomout_recovers_a_permutation_from_a_noisy_seed(spot_pair):
     S, T, perm = spot_pair
     seeds = _fps(S, 48)

@@ -1,13 +1,17 @@
-"""One function in a background thread, torch threads split meanwhile.
+"""One function in a background thread, torch threads split meanwhile; independent jobs on
+the torch threads, one each.
 """
 
 from __future__ import annotations
 
 import contextlib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
+
+from ..heat import threads
 
 
 class _Background:
@@ -41,6 +45,11 @@ class _Background:
         self._thread = threading.Thread(target=run, daemon=True, name="torchheat-background")
         self._thread.start()
 
+    @property
+    def running(self) -> bool:
+        """Whether the function is still running (the caller's other work is then free)."""
+        return self._thread is not None and self._thread.is_alive()
+
     def wait(self) -> None:
         if self._thread is None:
             return
@@ -60,3 +69,35 @@ class _Background:
             return
         with contextlib.suppress(BaseException):  # the exception in flight wins
             self.wait()
+
+
+def run_each(jobs: Sequence[Callable[[], object]], n_threads: int) -> None:
+    """Run independent ``jobs`` side by side on ``n_threads`` threads, one torch thread each,
+    and wait for all of them (an exception of a job is re-raised; their results are their side
+    effects, e.g. a memo's entries). Sequential, in order, when ``n_threads < 2``.
+
+    Small GEMMs split over two threads ran 1.45x faster than on one; two such jobs on one
+    thread each ran 1.8x faster (ZoomOuts of 500 rows and 2000 targets, 16 -> 100 modes, a
+    2-core host). A job that sets its own thread count sets it for its pool thread only
+    (torch's count is per OS thread), so its result does not depend on ``n_threads``.
+
+    Examples
+    --------
+    >>> out = []
+    >>> run_each([lambda: out.append(1), lambda: out.append(2)], 2)
+    >>> sorted(out)
+    [1, 2]
+    """
+    if n_threads < 2 or len(jobs) < 2:
+        for job in jobs:
+            job()
+        return
+
+    def one(job: Callable[[], object]) -> None:
+        with threads(1):
+            job()
+
+    with ThreadPoolExecutor(max_workers=min(int(n_threads), len(jobs)),
+                            thread_name_prefix="torchheat-job") as ex:
+        for f in [ex.submit(one, job) for job in jobs]:
+            f.result()

@@ -61,6 +61,7 @@ from .select import (
     _descriptor_symmetry,
     _spectral_choice,
     _zoomout_final,
+    prefetch_choice,
 )
 
 __all__ = ["match"]
@@ -765,7 +766,10 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     # images only) is the other hypothesis; the orientation test tells them apart.
     mirror = None
     if opt.mirror_hypothesis and tgt is not src:
-        bg.wait()  # the self-symmetry, if it was computed in the background
+        # the self-symmetry, if it runs in the background: the choice's first ZoomOuts
+        # meanwhile, then wait for it
+        prefetch_choice(src, tgt, hs.samples, by_energy, opt, memo, lambda: bg.running)
+        bg.wait()
         sig = _symmetry_at(tgt, best.g, opt.use_hks, opt.engine, opt.n_candidates,
                            opt.refine_log_floor)
         if sig is not None:

@@ -25,6 +25,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..heat import threads
+from .background import run_each
 from .fmap import descriptor_functional_map, landmark_functional_map, wave_kernel_signature
 from .options import _Options
 from .orientation import _orientation, _orientation_signs, _triangles
@@ -90,9 +91,63 @@ def _memo_zoomout(memo: dict | None, phi_s: torch.Tensor, phi_t: torch.Tensor,
     first stage refined is not refined again)."""
     key = ("zoomout", seed_rows.numpy().tobytes(), seed_images.numpy().tobytes(), k_start,
            k_end, rows.numel(), None if targets is None else targets.numel())
-    return _memoised(memo, key, lambda: zoomout(phi_s, phi_t, seed_rows, seed_images, rows,
-                                                k_start=k_start, k_end=k_end, step=_ZO_STEP,
-                                                targets=targets))
+    return _memoised(memo, key, lambda: _one_thread(
+        lambda: zoomout(phi_s, phi_t, seed_rows, seed_images, rows, k_start=k_start,
+                        k_end=k_end, step=_ZO_STEP, targets=targets)))
+
+
+def _one_thread(compute: Callable[[], ZoomOutResult]) -> ZoomOutResult:
+    """``compute()`` on one torch thread: a candidate's ZoomOut is the same bits whatever the
+    caller's thread count and whichever thread runs it (GEMMs split over threads round
+    differently), so candidates run side by side (:func:`_prefetch`) or ahead of time
+    (:func:`prefetch_choice`) score exactly as one after the other."""
+    if torch.get_num_threads() == 1:
+        return compute()
+    with threads(1):
+        return compute()
+
+
+def _prefetch(jobs: list[Callable[[], object]]) -> None:
+    """Candidates' ZoomOuts (memoised ``jobs``) side by side on the caller's torch threads,
+    one each (:func:`~torchheat.matching.background.run_each`); the code that reads them
+    after finds them in the memo. Nothing to do on one thread."""
+    run_each(jobs, torch.get_num_threads())
+
+
+def prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
+                    pool: list[Hypothesis], opt: _Options, memo: dict | None,
+                    busy: Callable[[], bool]) -> None:
+    """While ``busy()``, the first ZoomOuts that :func:`_spectral_choice` will ask for, into
+    ``memo``: those of the distinct hypotheses of ``pool`` (lowest energy first), then the
+    descriptor candidate's. One at a time, on one torch thread, so each is the same bits as
+    when the choice computes it.
+
+    The pipeline calls it while the target's self-symmetry runs in the background and the
+    calling thread would only wait for it (the mirror hypothesis needs it; it is not in
+    ``pool``, and a candidate it displaces was computed for nothing, on a core that was idle).
+    """
+    if memo is None or not (opt.zoomout and tgt is not src and opt.partial_ratio is None
+                            and busy()):
+        return
+    Vt, _ = tgt.mesh.numpy()
+    cands = _distinct_hypotheses(pool, Vt, 0.05 * tgt.mesh.bbox_diagonal(),
+                                 max(1, opt.zoomout_hypotheses))
+    phi_s, phi_t = _bases(src, tgt)
+    rows = _fps(src, opt.zoomout_samples)
+    targets = _fps(tgt, _ZO_TARGETS)
+    k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
+    jobs = [lambda r=r: _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows,
+                                      k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+            for r in cands]
+    pos = torch.full((src.n,), -1, dtype=torch.int64)
+    pos[rows] = torch.arange(rows.numel())
+    if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
+        jobs.append(lambda: _descriptor_zoomout(src, tgt, rows, pos[samples], k_sel, targets,
+                                                memo))
+    for job in jobs:
+        if not busy():
+            return
+        job()
 
 
 #: ``symmetries_at(shape, vertices)``: the images of ``vertices`` under each of the shape's
@@ -144,6 +199,9 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         return _base_score(r, tear) - w * o
 
     with threads(opt.num_threads):
+        _prefetch([lambda r=r: _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows,
+                                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+                   for r in cands])
         for r in cands:
             zo = _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
@@ -151,9 +209,17 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             r.zo_orientation = orient(zo.images)
         # positions of the refinement samples among the rows (None if a sample is not a row)
         at = pos[samples] if bool((pos[samples] >= 0).all()) else None
-        if opt.mirror_hypothesis and opt.orientation and at is not None:
-            cands += _mirror_partners(src, tgt, rows, at, cands, opt, k_sel,
-                                      targets, orient, symmetries_at, memo)
+        partners = opt.mirror_hypothesis and opt.orientation and at is not None
+        mirror_seeds = _mirror_seeds(src, tgt, rows, cands, targets, symmetries_at) \
+            if partners else []
+        _prefetch([lambda s=s: _memo_zoomout(memo, phi_s, phi_t, rows, s, rows,
+                                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+                   for _, seeds in mirror_seeds for s in seeds]
+                  + ([lambda: _descriptor_zoomout(src, tgt, rows, at, k_sel, targets, memo)]
+                     if opt.descriptor_seed and at is not None else []))
+        if partners:
+            cands += _mirror_partners(src, tgt, rows, at, cands, mirror_seeds, k_sel,
+                                      targets, orient, memo)
         if opt.descriptor_seed and at is not None:
             t_d = time.perf_counter()
             cands += _descriptor_candidate(src, tgt, rows, at, cands, k_sel,
@@ -295,17 +361,22 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     phi_s, phi_t = _bases(src, tgt)
     top = sorted(cands, key=lambda r: _base_score(r, tear))[:_REORIENT_TOP]
     k0 = min(_REORIENT_K, k_sel)
-    out: list[Hypothesis] = []
-    for r in top:
-        im = r.zo.images
-        def twin(im: torch.Tensor = im) -> ZoomOutResult:
+
+    def twin(im: torch.Tensor) -> ZoomOutResult:
+        def compute() -> ZoomOutResult:
             C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS],
                                         im[:_REORIENT_POINTS], k=k0, memo=memo)
             j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
             return _memo_zoomout(memo, phi_s, phi_t, rows, targets[j], rows, k_start=k0,
                                  k_end=k_sel, targets=targets)
 
-        zo = _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0), twin)
+        return _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0),
+                         lambda: _one_thread(compute))
+
+    _prefetch([lambda im=r.zo.images: twin(im) for r in top])
+    out: list[Hypothesis] = []
+    for r in top:
+        zo = twin(r.zo.images)
         new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), reoriented=True)
         new.zo_tear = None  # the tear is the twin's own
         if at_samples is not None:
@@ -455,16 +526,23 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     r_np = rows.numpy()
     _, nb = cKDTree(Vs[r_np]).query(Vs[r_np], k=min(_TRIM_K, len(r_np)))
     phi_s, phi_t = _bases(src, tgt)
-    out: list[Hypothesis] = []
+    kept: list[tuple[Hypothesis, torch.Tensor]] = []
     for r in parents:
         images = r.zo.images
         sg = _orientation_signs(src, tgt, tri, lambda i, f=images: f[pos[i]].numpy())
         keep_np = sg[nb].mean(axis=1) > 0  # per row: its neighbourhood keeps the orientation
         if keep_np.sum() < _TRIM_MIN or keep_np.mean() >= 0.99:
             continue
-        keep = torch.from_numpy(keep_np)
-        zo = _memo_zoomout(memo, phi_s, phi_t, rows[keep], images[keep], rows,
-                           k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+        kept.append((r, torch.from_numpy(keep_np)))
+
+    def trimmed(r: Hypothesis, keep: torch.Tensor) -> ZoomOutResult:
+        return _memo_zoomout(memo, phi_s, phi_t, rows[keep], r.zo.images[keep], rows,
+                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+
+    _prefetch([lambda r=r, keep=keep: trimmed(r, keep) for r, keep in kept])
+    out: list[Hypothesis] = []
+    for r, keep in kept:
+        zo = trimmed(r, keep)
         new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), trimmed=True)
         new.zo_tear = None  # the tear is the twin's own (parents are not scored yet here)
         if at_samples is not None:  # its own images of the refinement samples
@@ -480,12 +558,33 @@ _MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measur
 # on 13 weak SCAPE pairs, and a self-match more per source shape)
 
 
+def _mirror_seeds(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                  cands: list[Hypothesis], targets: torch.Tensor, symmetries_at: SymmetriesAt
+                  ) -> list[tuple[Hypothesis, list[torch.Tensor]]]:
+    """Each orientation-reversing ZoomOut candidate ``T`` (below ``_MIRROR_BELOW``) with the
+    seeds of its mirror partners on ``rows``: ``sigma_N o T`` for each of the target's
+    symmetries (and ``T o sigma_M``, read from ``T``'s functional map, with
+    ``_MIRROR_SOURCE``)."""
+    phi_s, phi_t = _bases(src, tgt)
+    src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
+    out = []
+    for r in [c for c in cands if c.zo_orientation < _MIRROR_BELOW]:
+        seeds = symmetries_at(tgt, r.zo.images)
+        for ss in src_syms:
+            j = spectral_map(phi_s, phi_t[targets], r.zo.C, ss)[1]
+            seeds.append(targets[j])
+        out.append((r, seeds))
+    return out
+
+
 def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
-                     at_samples: torch.Tensor, cands: list[Hypothesis], opt: _Options, k_sel: int,
+                     at_samples: torch.Tensor, cands: list[Hypothesis],
+                     mirror_seeds: list[tuple[Hypothesis, list[torch.Tensor]]], k_sel: int,
                      targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                     symmetries_at: SymmetriesAt, memo: dict | None = None) -> list[dict]:
+                     memo: dict | None = None) -> list[dict]:
     """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
-    ``T`` (``sigma_N``: the target's intrinsic symmetry), refined by ZoomOut from 16 modes.
+    ``T`` (``sigma_N``: the target's intrinsic symmetry; the seeds of :func:`_mirror_seeds`),
+    refined by ZoomOut from 16 modes.
 
     The hypotheses of human poses are often a clean mirror map (orientation -0.8..-0.9) and a
     left/right + front/back swap (a half-turn about the body axis, orientation-preserving),
@@ -498,13 +597,7 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     phi_s, phi_t = _bases(src, tgt)
     out: list[Hypothesis] = []
-    src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
-    for r in [c for c in cands if c.zo_orientation < _MIRROR_BELOW]:
-        # sigma_N o T for each target symmetry
-        seeds = symmetries_at(tgt, r.zo.images)
-        for ss in src_syms:  # T o sigma_M, read from T's functional map
-            j = spectral_map(phi_s, phi_t[targets], r.zo.C, ss)[1]
-            seeds.append(targets[j])
+    for _, seeds in mirror_seeds:
         for seed in seeds:
             zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
@@ -541,6 +634,23 @@ def _descriptor_symmetry(shape: PreparedShape, rows: torch.Tensor, pos: torch.Te
     return Hypothesis(lms0=[], g=g, energy=energy, orientation=o, descriptor_seed=True)
 
 
+def _descriptor_zoomout(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                        at_samples: torch.Tensor, k_sel: int, targets: torch.Tensor,
+                        memo: dict | None) -> ZoomOutResult:
+    """The ZoomOut of :func:`_descriptor_candidate` (memoised, on one torch thread)."""
+    phi_s, phi_t = _bases(src, tgt)
+    k = min(_DESCR_K, k_sel)
+    C = _memoised(memo, ("descriptor map", k), lambda: _one_thread(
+        lambda: descriptor_functional_map(src, tgt, k=k, memo=memo)))
+    # seeded like every other candidate: its images of the refinement samples, from
+    # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
+    # than a comparable landmark hypothesis: measured, it then beat right maps)
+    seed_rows = rows[at_samples]
+    _, j = _one_thread(lambda: spectral_map(phi_s, phi_t[targets], C, seed_rows))
+    return _memo_zoomout(memo, phi_s, phi_t, seed_rows, targets[j], rows,
+                         k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+
+
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                           at_samples: torch.Tensor, cands: list[Hypothesis], k_sel: int,
                           targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
@@ -550,17 +660,7 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
     ZoomOut from ``_DESCR_K`` to ``k_sel`` modes. Dropped when its images agree with an
     existing candidate's (as in :func:`_distinct_hypotheses`)."""
-    phi_s, phi_t = _bases(src, tgt)
-    k = min(_DESCR_K, k_sel)
-    C = _memoised(memo, ("descriptor map", k),
-                  lambda: descriptor_functional_map(src, tgt, k=k, memo=memo))
-    # seeded like every other candidate: its images of the refinement samples, from
-    # _ZO_START_K modes (started from its own 30-mode map, ZoomOut ends at a lower residual
-    # than a comparable landmark hypothesis: measured, it then beat right maps)
-    seed_rows = rows[at_samples]
-    _, j = spectral_map(phi_s, phi_t[targets], C, seed_rows)
-    zo = _memo_zoomout(memo, phi_s, phi_t, seed_rows, targets[j], rows, k_start=_ZO_START_K,
-                       k_end=k_sel, targets=targets)
+    zo = _descriptor_zoomout(src, tgt, rows, at_samples, k_sel, targets, memo)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     agree = [_agree(Vt, zo.images, o.zo.images, radius) for o in cands]
