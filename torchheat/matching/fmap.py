@@ -37,6 +37,7 @@ import numpy as np
 import scipy.linalg
 import torch
 
+from ..heat import threads
 from .prepared import PreparedShape, _memoised
 
 __all__ = ["wave_kernel_signature", "orientation_operators", "shape_operators",
@@ -387,7 +388,8 @@ def shape_operators(shape: PreparedShape, k: int, n_descr: int
     sigma = 7.0 * (e_max - e_min) / max(2 * n_descr, 1)
     energies = np.linspace(e_min + 2 * sigma, e_max - 2 * sigma, n_descr)
     V, F, mass = _unit_area(shape)
-    d = wave_kernel_signature(torch.from_numpy(lam), phi_all, energies, sigma).numpy()
+    with threads(1):  # the same bits whichever thread fills the cache first (matching.select)
+        d = wave_kernel_signature(torch.from_numpy(lam), phi_all, energies, sigma).numpy()
     d = d / np.sqrt((mass[:, None] * d * d).sum(0)).clip(1e-300)[None, :]
     cache[key] = descriptor_operators(V, F, mass, phi_all[:, :k].numpy(), d)
     return cache[key]

@@ -118,9 +118,10 @@ def prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tenso
                     pool: list[Hypothesis], opt: _Options, memo: dict | None,
                     busy: Callable[[], bool]) -> None:
     """While ``busy()``, the first ZoomOuts that :func:`_spectral_choice` will ask for, into
-    ``memo``: those of the distinct hypotheses of ``pool`` (lowest energy first), then the
-    descriptor candidate's. One at a time, on one torch thread, so each is the same bits as
-    when the choice computes it.
+    ``memo``: the descriptor candidate's, then those of the distinct hypotheses of ``pool``
+    (lowest energy first). One at a time, on one torch thread, so each is the same bits as
+    when the choice computes it (so are the descriptor operators cached on the shapes, which
+    the self-symmetry computes too: :func:`~torchheat.matching.fmap.shape_operators`).
 
     The pipeline calls it while the target's self-symmetry runs in the background and the
     calling thread would only wait for it (the mirror hypothesis needs it; it is not in
@@ -141,9 +142,9 @@ def prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tenso
             for r in cands]
     pos = torch.full((src.n,), -1, dtype=torch.int64)
     pos[rows] = torch.arange(rows.numel())
-    if opt.descriptor_seed and bool((pos[samples] >= 0).all()):
-        jobs.append(lambda: _descriptor_zoomout(src, tgt, rows, pos[samples], k_sel, targets,
-                                                memo))
+    if opt.descriptor_seed and bool((pos[samples] >= 0).all()):  # the longest first
+        jobs.insert(0, lambda: _descriptor_zoomout(src, tgt, rows, pos[samples], k_sel,
+                                                   targets, memo))
     for job in jobs:
         if not busy():
             return
