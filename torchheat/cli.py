@@ -231,8 +231,8 @@ def _closed_source(solved: list[tuple[Any, Any]]) -> tuple[Any, Any] | None:
 
 
 #: the eigensolve workers' nice value: ``import torch`` in this process is what the command waits
-#: on first, and on two cores three busy processes slowed it (two 5k-vertex meshes: import and
-#: solves done after 1.17 s at the same priority, 0.92 s with the workers at nice 10)
+#: on first, and on two cores three busy processes slowed it (BENCHMARKS.md, twenty-eighth
+#: session)
 _WORKER_NICE = 10
 
 

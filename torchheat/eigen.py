@@ -462,7 +462,7 @@ def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray, int
         pass
     # results go out from a thread of their own: a pipe holds 64 KB, so a send blocks until
     # the parent reads, and the parent reads only after ``import torch``; the next solve must
-    # not wait for that (one worker solving two 5k meshes finished 0.55 s later)
+    # not wait for that
     outbox: queue.SimpleQueue = queue.SimpleQueue()
 
     def send_all() -> None:
@@ -513,9 +513,8 @@ class EigenWorkers:
     nice : int, optional
         Added to the workers' nice value (``os.nice``; 0: as the parent). A caller whose own
         work meanwhile is what it waits on first (the command line's ``import torch``) gives
-        its workers a lower priority: they still get every cycle it leaves. With two 5k-vertex
-        meshes on two cores, the parent's import and both solves were done after 0.92 s at
-        nice 10, against 1.17 s at 0 (three busy processes on two cores).
+        its workers a lower priority: they still get every cycle it leaves (measured in
+        BENCHMARKS.md, twenty-eighth session).
 
     Examples
     --------

@@ -76,10 +76,10 @@ def run_each(jobs: Sequence[Callable[[], object]], n_threads: int) -> None:
     and wait for all of them (an exception of a job is re-raised; their results are their side
     effects, e.g. a memo's entries). Sequential, in order, when ``n_threads < 2``.
 
-    Small GEMMs split over two threads ran 1.45x faster than on one; two such jobs on one
-    thread each ran 1.8x faster (ZoomOuts of 500 rows and 2000 targets, 16 -> 100 modes, a
-    2-core host). A job that sets its own thread count sets it for its pool thread only
-    (torch's count is per OS thread), so its result does not depend on ``n_threads``.
+    Small independent jobs (a match's ZoomOut candidates) gain more this way than from
+    splitting each one's GEMMs over the threads (BENCHMARKS.md, twenty-eighth session). A job
+    that sets its own thread count sets it for its pool thread only (torch's count is per OS
+    thread), so its result does not depend on ``n_threads``.
 
     Examples
     --------
