@@ -815,8 +815,16 @@ def test_run_each_runs_every_job_on_one_torch_thread_each():
     def boom():
         raise RuntimeError("in a job")
 
-    with pytest.raises(RuntimeError, match="in a job"):
-        tm.background.run_each([job(9), boom], 2)
+    def slow(i):
+        def run():
+            threading.Event().wait(0.005)
+            job(i)()
+        return run
+
+    seen.clear()
+    with pytest.raises(RuntimeError, match="in a job"):  # the jobs not started are dropped
+        tm.background.run_each([boom, *[slow(i) for i in range(200)]], 2)
+    assert len(seen) < 200
 
 
 def test_background_running_flag():

@@ -97,7 +97,10 @@ def run_each(jobs: Sequence[Callable[[], object]], n_threads: int) -> None:
         with threads(1):
             job()
 
-    with ThreadPoolExecutor(max_workers=min(int(n_threads), len(jobs)),
-                            thread_name_prefix="torchheat-job") as ex:
+    ex = ThreadPoolExecutor(max_workers=min(int(n_threads), len(jobs)),
+                            thread_name_prefix="torchheat-job")
+    try:
         for f in [ex.submit(one, job) for job in jobs]:
             f.result()
+    finally:  # a failed job or Ctrl-C: the jobs not started yet are dropped
+        ex.shutdown(wait=True, cancel_futures=True)
