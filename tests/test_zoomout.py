@@ -483,3 +483,43 @@ def test_fine_map_is_finer_on_a_real_pair():
     assert base["landmarks"] == fine["landmarks"]
     assert fine["direct"]["under_0.25"] >= 0.99
     assert fine["direct"]["mean"] < 0.9 * base["direct"]["mean"]
+
+
+def test_prefetch_choice_fills_the_memo_while_busy_and_stops(spot_pair):
+    # while the self-symmetry runs, the choice's first ZoomOuts go into the memo (the
+    # descriptor candidate first), one at a time, each the bits the choice would compute;
+    # it stops at the first check after the background work is done
+    from torchheat.heat import threads
+    from torchheat.matching.refine import Hypothesis
+    from torchheat.matching.select import _ZO_TARGETS, _descriptor_zoomout, prefetch_choice
+
+    S, T, perm = spot_pair
+    samples = _fps(S, 48)
+    g_true = perm[samples]  # (the descriptor candidate's own seed on this exact copy)
+    pool = [Hypothesis(lms0=[], g=torch.roll(g_true, r), energy=float(r), orientation=1.0)
+            for r in (7, 13)]
+    opt = _default_options()
+    rows, targets = _fps(S, opt.zoomout_samples), _fps(T, _ZO_TARGETS)
+    pos = torch.full((S.n,), -1, dtype=torch.int64)
+    pos[rows] = torch.arange(rows.numel())
+
+    def zo_keys(memo):
+        return [k for k in memo if k[0] == "zoomout"]
+
+    for busy_checks, n_zoomouts in ((2, 1), (3, 2), (10, 3)):
+        calls = []
+        memo: dict = {}
+        with threads(2):
+            prefetch_choice(S, T, samples, pool, opt, memo,
+                            lambda calls=calls, n=busy_checks: calls.append(1) or len(calls) <= n)
+        assert len(zo_keys(memo)) == n_zoomouts  # descriptor, then the candidates in turn
+        assert ("descriptor map", 30) in memo
+    # everything it computed is what the choice computes on one thread, bit for bit
+    with threads(1):
+        ref = _descriptor_zoomout(S, T, rows, pos[samples], 100, targets, {})
+    mine = memo[zo_keys(memo)[0]]
+    assert torch.equal(mine.images, ref.images) and mine.residual == ref.residual
+    assert torch.equal(mine.C, ref.C)
+    none: dict = {}
+    prefetch_choice(S, T, samples, pool, opt, none, lambda: False)  # not busy: nothing
+    assert none == {}
