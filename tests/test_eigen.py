@@ -141,6 +141,29 @@ def test_worker_solves_on_while_its_results_wait_to_be_read(monkeypatch):
     child.join(30)
     assert sent == [0, 1, 2] and closed == [True]
 
+    # the parent gone (a broken pipe): the worker stops solving and closes its end
+    solved.clear()
+    attempted = threading.Event()
+
+    class Gone:
+        def send(self, item):
+            attempted.set()
+            raise BrokenPipeError("the parent has gone")
+
+        def close(self):
+            closed.append("gone")
+
+    def solve(V, F, k):
+        solved.append(len(V))
+        if len(solved) == 2:  # the first result's send has failed meanwhile
+            assert attempted.wait(30)
+            threading.Event().wait(0.2)
+        return np.zeros(k), V[:, :1]
+
+    monkeypatch.setattr(eigen, "cotan_eigenpairs", solve)
+    eigen._solve_in_child(Gone(), jobs)
+    assert solved == [10, 11] and closed[-1] == "gone"
+
 
 @linux
 def test_workers_nice_value_and_results():

@@ -491,7 +491,7 @@ def test_prefetch_choice_fills_the_memo_while_busy_and_stops(spot_pair):
     # it stops at the first check after the background work is done
     from torchheat.heat import threads
     from torchheat.matching.refine import Hypothesis
-    from torchheat.matching.select import _ZO_TARGETS, _descriptor_zoomout, prefetch_choice
+    from torchheat.matching.select import _ZO_TARGETS, _descriptor_zoomout, _prefetch_choice
 
     S, T, perm = spot_pair
     samples = _fps(S, 48)
@@ -510,7 +510,7 @@ def test_prefetch_choice_fills_the_memo_while_busy_and_stops(spot_pair):
         calls = []
         memo: dict = {}
         with threads(2):
-            prefetch_choice(S, T, samples, pool, opt, memo,
+            _prefetch_choice(S, T, samples, pool, opt, memo,
                             lambda calls=calls, n=busy_checks: calls.append(1) or len(calls) <= n)
         assert len(zo_keys(memo)) == n_zoomouts  # descriptor, then the candidates in turn
         assert ("descriptor map", 30) in memo
@@ -521,5 +521,5 @@ def test_prefetch_choice_fills_the_memo_while_busy_and_stops(spot_pair):
     assert torch.equal(mine.images, ref.images) and mine.residual == ref.residual
     assert torch.equal(mine.C, ref.C)
     none: dict = {}
-    prefetch_choice(S, T, samples, pool, opt, none, lambda: False)  # not busy: nothing
+    _prefetch_choice(S, T, samples, pool, opt, none, lambda: False)  # not busy: nothing
     assert none == {}

@@ -464,14 +464,20 @@ def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray, int
     # the parent reads, and the parent reads only after ``import torch``; the next solve must
     # not wait for that
     outbox: queue.SimpleQueue = queue.SimpleQueue()
+    gone = threading.Event()
 
     def send_all() -> None:
-        while (item := outbox.get()) is not None:
-            conn.send(item)
+        try:
+            while (item := outbox.get()) is not None:
+                conn.send(item)
+        except (OSError, EOFError):  # the parent has gone: nobody reads the rest
+            gone.set()
 
     sender = threading.Thread(target=send_all, daemon=True, name="torchheat-eigen-send")
     sender.start()
     for i, V, F, k in jobs:
+        if gone.is_set():
+            break
         try:
             lam, phi = cotan_eigenpairs(V, F, k)
             outbox.put((i, "ok", lam, phi))

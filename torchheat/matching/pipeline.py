@@ -59,9 +59,9 @@ from .select import (
     _dense_partial_guarded,
     _dense_spectral,
     _descriptor_symmetry,
+    _prefetch_choice,
     _spectral_choice,
     _zoomout_final,
-    prefetch_choice,
 )
 
 __all__ = ["match"]
@@ -768,7 +768,7 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     if opt.mirror_hypothesis and tgt is not src:
         # the self-symmetry, if it runs in the background: the choice's first ZoomOuts
         # meanwhile, then wait for it
-        prefetch_choice(src, tgt, hs.samples, by_energy, opt, memo, lambda: bg.running)
+        _prefetch_choice(src, tgt, hs.samples, by_energy, opt, memo, lambda: bg.running)
         bg.wait()
         sig = _symmetry_at(tgt, best.g, opt.use_hks, opt.engine, opt.n_candidates,
                            opt.refine_log_floor)

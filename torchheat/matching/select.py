@@ -19,6 +19,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -34,6 +35,8 @@ from .prepared import PreparedShape, _fps, _memoised
 from .quality import AMBIGUOUS_BELOW, map_quality
 from .refine import Hypothesis, _agree, _Refiner
 from .zoomout import ZoomOutResult, dense_spectral_map, fine_map, spectral_map, zoomout
+
+_T = TypeVar("_T")
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
 _ZO_STEP = 8  # modes added per ZoomOut step
@@ -96,11 +99,11 @@ def _memo_zoomout(memo: dict | None, phi_s: torch.Tensor, phi_t: torch.Tensor,
                         k_end=k_end, step=_ZO_STEP, targets=targets)))
 
 
-def _one_thread(compute: Callable[[], ZoomOutResult]) -> ZoomOutResult:
+def _one_thread(compute: Callable[[], _T]) -> _T:
     """``compute()`` on one torch thread: a candidate's ZoomOut is the same bits whatever the
     caller's thread count and whichever thread runs it (GEMMs split over threads round
     differently), so candidates run side by side (:func:`_prefetch`) or ahead of time
-    (:func:`prefetch_choice`) score exactly as one after the other."""
+    (:func:`_prefetch_choice`) score exactly as one after the other."""
     if torch.get_num_threads() == 1:
         return compute()
     with threads(1):
@@ -114,7 +117,7 @@ def _prefetch(jobs: list[Callable[[], object]]) -> None:
     run_each(jobs, torch.get_num_threads())
 
 
-def prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
+def _prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
                     pool: list[Hypothesis], opt: _Options, memo: dict | None,
                     busy: Callable[[], bool]) -> None:
     """While ``busy()``, the first ZoomOuts that :func:`_spectral_choice` will ask for, into
