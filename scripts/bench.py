@@ -7,6 +7,7 @@
     python scripts/bench.py partial [--source PIECE --target WHOLE]
     python scripts/bench.py fine  [--source PATH --target PATH] [--k 200]
     python scripts/bench.py gtcheck [--pairs victoria17:victoria2,...]
+    python scripts/bench.py threads [--source PATH --target PATH] [--candidates 16]
 
 Every row is measured in the same run on the same input; errors are relative L2 errors per
 (source, time) against scipy's ``expm_multiply``, maximised over sources and times.
@@ -531,6 +532,125 @@ def bench_gtcheck(args) -> None:
     print(table(rows, ("pair", "rows", "torchheat s", "loop s", "speed-up", "identical")))
 
 
+_WORKERS_SNIPPET = """
+import sys, time
+t0 = time.perf_counter()
+from torchheat.eigen import EigenWorkers
+from torchheat.meshio import read_arrays
+arrays = [read_arrays(p) for p in sys.argv[3:]]
+t1 = time.perf_counter()
+with EigenWorkers(arrays, k=100, processes=int(sys.argv[1]), nice=int(sys.argv[2])) as bg:
+    import torch  # what the command line does while its workers solve
+    got = [bg.get(i) for i in range(len(arrays))]
+assert all(g is not None for g in got) or int(sys.argv[1]) == 0
+print(time.perf_counter() - t1)
+"""
+
+
+def bench_threads(args) -> None:
+    """What two torch threads buy ``match``: its ZoomOut candidates one after the other on
+    one thread, one after the other with each GEMM split over the threads (before the
+    twenty-eighth session), and side by side on one thread each (``background.run_each``,
+    since); and the command line's eigensolve workers while the parent imports torch, at the
+    parent's priority and at nice 10, against solving in the process after the import (the
+    code a user would write: ``--workers 0``). Each worker setting runs in a fresh
+    interpreter (``import torch`` is timed once per process)."""
+    import os
+    import subprocess
+
+    from torchheat.heat import blas_threads, threads
+    from torchheat.matching.background import run_each
+    from torchheat.matching.prepared import _fps
+    from torchheat.matching.zoomout import zoomout
+
+    if args.source and args.target:
+        s_mesh, t_mesh = load_mesh(args.source), load_mesh(args.target)
+        paths = [args.source, args.target]
+    else:
+        s_mesh = generic_mesh()
+        t_mesh = permuted_copy(s_mesh)[0]
+        paths = []
+    s, t = torchheat.prepare(s_mesh), torchheat.prepare(t_mesh)
+    corr = torchheat.match(s, t)
+    phi_s, phi_t = s.hk.eigenvectors, t.hk.eigenvectors
+    rows, targets = _fps(s, 500), _fps(t, 2000)
+    seed_rows = rows[:48]
+    g = torch.Generator().manual_seed(0)
+    seeds = []
+    for i in range(args.candidates):  # the chosen map's sample images, i of them moved
+        im = corr.map[seed_rows].clone()
+        moved = torch.randperm(48, generator=g)[:i]
+        im[moved] = targets[torch.randint(0, targets.numel(), (moved.numel(),), generator=g)]
+        seeds.append(im)
+
+    def one(im):
+        return zoomout(phi_s, phi_t, seed_rows, im, rows, k_start=16, k_end=100, step=8,
+                       targets=targets)
+
+    out_rows = []
+    with blas_threads(1):
+        with threads(1):
+            t0 = time.perf_counter()
+            ref = [one(im) for im in seeds]
+            t_one = time.perf_counter() - t0
+        with threads(2):
+            t0 = time.perf_counter()
+            split = [one(im) for im in seeds]
+            t_split = time.perf_counter() - t0
+            got: dict[int, object] = {}
+            t0 = time.perf_counter()
+            run_each([lambda i=i, im=im: got.__setitem__(i, one(im))
+                      for i, im in enumerate(seeds)], 2)
+            t_side = time.perf_counter() - t0
+    side = [got[i] for i in range(len(seeds))]
+
+    def same(res) -> str:
+        n = sum(a.residual == b.residual and torch.equal(a.images, b.images)
+                for a, b in zip(ref, res, strict=True))
+        return f"{n}/{len(ref)}"
+
+    name = f"{args.candidates} ZoomOuts (500 rows, 2000 targets, 16 -> 100 modes)"
+    out_rows.append((f"{name}: one thread", f"{t_one:.3f}", same(ref)))
+    out_rows.append(("  two threads, each GEMM split over them", f"{t_split:.3f}", same(split)))
+    out_rows.append(("  two threads, side by side on one thread each (run_each)", f"{t_side:.3f}",
+                     same(side)))
+    if not paths:  # the workers read files: write the pair
+        import tempfile
+
+        tmp = Path(tempfile.mkdtemp())
+        for m, nm in ((s_mesh, "a.off"), (t_mesh, "b.off")):
+            V, F = m.numpy()
+            with open(tmp / nm, "w") as fh:
+                fh.write(f"OFF\n{len(V)} {len(F)} 0\n")
+                np.savetxt(fh, V, fmt="%.17g")
+                np.savetxt(fh, np.hstack([np.full((len(F), 1), 3), F]), fmt="%d")
+            paths.append(str(tmp / nm))
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
+    for w, nice, what in ((0, 0, "in the process, after import torch (--workers 0)"),
+                          (2, 0, "2 workers at the parent's priority (before)"),
+                          (2, 10, "2 workers at nice 10 (since)"),
+                          (1, 10, "1 worker, both meshes, at nice 10")):
+        times = []
+        for _ in range(args.repeat):
+            if w == 0:
+                code = ("import sys, time; t0 = time.perf_counter(); import torch; "
+                        "from torchheat.eigen import cotan_eigenpairs; "
+                        "from torchheat.meshio import read_arrays; "
+                        "[cotan_eigenpairs(*read_arrays(p), 100) for p in sys.argv[3:]]; "
+                        "print(time.perf_counter() - t0)")
+            else:
+                code = _WORKERS_SNIPPET
+            res = subprocess.run([sys.executable, "-c", code, str(w), str(nice), *paths],
+                                 env=env, capture_output=True, text=True, check=True)
+            times.append(float(res.stdout.split()[-1]))
+        out_rows.append((f"import torch and both eigensolves: {what}",
+                         f"{min(times):.3f}-{max(times):.3f}", ""))
+    print(f"machine: {machine()}; pair: {s.n} / {t.n} vertices")
+    print(table(out_rows, ("stage", "seconds", "same bits as one thread")))
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -565,7 +685,16 @@ def main(argv=None) -> None:
                    help="TOSCA remeshed 5k pairs, source:target,...")
     g.add_argument("--root", help="data root (default: $TORCHHEAT_DATA or ../shared/data)")
     g.add_argument("--repeat", type=int, default=3)
+    th = sub.add_parser("threads", help="two torch threads: ZoomOut candidates side by side; "
+                                        "eigensolve workers during import torch")
+    th.add_argument("--source", help="source mesh (default: the generic mesh)")
+    th.add_argument("--target", help="target mesh (default: a permuted copy)")
+    th.add_argument("--candidates", type=int, default=16)
+    th.add_argument("--repeat", type=int, default=3)
     args = p.parse_args(argv)
+    if args.cmd == "threads":
+        bench_threads(args)
+        return
     if args.cmd == "gtcheck":
         bench_gtcheck(args)
         return
