@@ -110,11 +110,12 @@ def _one_thread(compute: Callable[[], _T]) -> _T:
         return compute()
 
 
-def _prefetch(jobs: list[Callable[[], object]]) -> None:
+def _prefetch(jobs: list[Callable[[], object]], on: torch.Tensor) -> None:
     """Candidates' ZoomOuts (memoised ``jobs``) side by side on the caller's torch threads,
     one each (:func:`~torchheat.matching.background.run_each`); the code that reads them
-    after finds them in the memo. Nothing to do on one thread."""
-    run_each(jobs, torch.get_num_threads())
+    after finds them in the memo. Nothing to do on one thread, nor when the bases ``on`` are
+    on a GPU (its work queues on one stream: threads would only add overhead)."""
+    run_each(jobs, torch.get_num_threads() if on.device.type == "cpu" else 1)
 
 
 def _prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
@@ -205,7 +206,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     with threads(opt.num_threads):
         _prefetch([lambda r=r: _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows,
                                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
-                   for r in cands])
+                   for r in cands], phi_s)
         for r in cands:
             zo = _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
@@ -220,7 +221,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
                    for _, seeds in mirror_seeds for s in seeds]
                   + ([lambda: _descriptor_zoomout(src, tgt, rows, at, k_sel, targets, memo)]
-                     if opt.descriptor_seed and at is not None else []))
+                     if opt.descriptor_seed and at is not None else []), phi_s)
         if partners:
             cands += _mirror_partners(src, tgt, rows, at, cands, mirror_seeds, k_sel,
                                       targets, orient, memo)
@@ -377,7 +378,7 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
         return _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0),
                          lambda: _one_thread(compute))
 
-    _prefetch([lambda im=r.zo.images: twin(im) for r in top])
+    _prefetch([lambda im=r.zo.images: twin(im) for r in top], phi_s)
     out: list[Hypothesis] = []
     for r in top:
         zo = twin(r.zo.images)
@@ -543,7 +544,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         return _memo_zoomout(memo, phi_s, phi_t, rows[keep], r.zo.images[keep], rows,
                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
 
-    _prefetch([lambda r=r, keep=keep: trimmed(r, keep) for r, keep in kept])
+    _prefetch([lambda r=r, keep=keep: trimmed(r, keep) for r, keep in kept], phi_s)
     out: list[Hypothesis] = []
     for r, keep in kept:
         zo = trimmed(r, keep)
