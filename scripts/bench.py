@@ -614,16 +614,14 @@ def bench_threads(args) -> None:
     out_rows.append(("  two threads, each GEMM split over them", f"{t_split:.3f}", same(split)))
     out_rows.append(("  two threads, side by side on one thread each (run_each)", f"{t_side:.3f}",
                      same(side)))
-    if not paths:  # the workers read files: write the pair
+    if not paths:  # the workers read files: write the pair (vertex order kept)
         import tempfile
+
+        import trimesh
 
         tmp = Path(tempfile.mkdtemp())
         for m, nm in ((s_mesh, "a.off"), (t_mesh, "b.off")):
-            V, F = m.numpy()
-            with open(tmp / nm, "w") as fh:
-                fh.write(f"OFF\n{len(V)} {len(F)} 0\n")
-                np.savetxt(fh, V, fmt="%.17g")
-                np.savetxt(fh, np.hstack([np.full((len(F), 1), 3), F]), fmt="%d")
+            trimesh.Trimesh(*m.numpy(), process=False).export(tmp / nm)
             paths.append(str(tmp / nm))
     env = {k: v for k, v in os.environ.items()
            if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}

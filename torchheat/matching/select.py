@@ -203,13 +203,14 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         o = min(sign * r.zo_orientation, _ZO_ORIENT_CLIP)
         return _base_score(r, tear) - w * o
 
+    def upsampled(seed_rows: torch.Tensor, seed_images: torch.Tensor) -> ZoomOutResult:
+        return _memo_zoomout(memo, phi_s, phi_t, seed_rows, seed_images, rows,
+                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+
     with threads(opt.num_threads):
-        _prefetch([lambda r=r: _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows,
-                                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
-                   for r in cands], phi_s)
+        _prefetch([lambda r=r: upsampled(samples, r.g) for r in cands], phi_s)
         for r in cands:
-            zo = _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows, k_start=_ZO_START_K,
-                               k_end=k_sel, targets=targets)
+            zo = upsampled(samples, r.g)
             r.zo = zo
             r.zo_orientation = orient(zo.images)
         # positions of the refinement samples among the rows (None if a sample is not a row)
@@ -217,9 +218,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         partners = opt.mirror_hypothesis and opt.orientation and at is not None
         mirror_seeds = _mirror_seeds(src, tgt, rows, cands, targets, symmetries_at) \
             if partners else []
-        _prefetch([lambda s=s: _memo_zoomout(memo, phi_s, phi_t, rows, s, rows,
-                                             k_start=_ZO_START_K, k_end=k_sel, targets=targets)
-                   for _, seeds in mirror_seeds for s in seeds]
+        _prefetch([lambda s=s: upsampled(rows, s) for _, seeds in mirror_seeds for s in seeds]
                   + ([lambda: _descriptor_zoomout(src, tgt, rows, at, k_sel, targets, memo)]
                      if opt.descriptor_seed and at is not None else []), phi_s)
         if partners:
