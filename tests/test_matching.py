@@ -1101,6 +1101,42 @@ def test_clear_needs_a_margin_and_a_direct_orientation():
     assert not _clear(dataclasses.replace(ok, zo_orientation=_ZO_ORIENT_CLIP - 0.1))
 
 
+def test_clear_needs_no_partly_different_map_close_behind():
+    from torchheat.matching.select import _CLEAR_MARGIN, _NEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
+
+    ok = Hypothesis(zo_margin=_CLEAR_MARGIN + 0.01, zo_orientation=_ZO_ORIENT_CLIP + 0.1)
+    assert _clear(ok)  # zo_near None: no partly different candidate
+    assert _clear(dataclasses.replace(ok, zo_near=_NEAR_MARGIN))
+    assert not _clear(dataclasses.replace(ok, zo_near=_NEAR_MARGIN - 0.01))
+
+
+def test_near_gap_counts_only_partly_different_candidates(mirror_pair):
+    from torchheat.matching.select import _ZO_SAME, _near_gap
+    from torchheat.matching.zoomout import ZoomOutResult
+
+    _, T, _, _ = mirror_pair
+    V, _ = T.mesh.numpy()
+    n = T.n
+    rows = torch.arange(n)
+    far = torch.as_tensor(np.argmax(np.linalg.norm(V - V[0], axis=1)))  # far from vertex 0
+
+    def cand(score: float, moved: int) -> Hypothesis:
+        images = rows.clone()
+        images[:moved] = far  # the first `moved` rows sent far away
+        return Hypothesis(zo=ZoomOutResult(rows, images, torch.eye(2), 0.1), energy=score)
+
+    chosen = cand(0.0, 0)
+    same = cand(0.001, int((1 - _ZO_SAME) * n) // 2)  # differs on too few rows: the same map
+    part = cand(0.3, n // 4)  # partly different
+    whole = cand(0.2, n)  # a different whole map (also a rival)
+    def score(r: Hypothesis) -> float:
+        return r.energy
+
+    assert _near_gap(chosen, [chosen, same], score, T) is None
+    assert _near_gap(chosen, [chosen, same, part], score, T) == pytest.approx(0.3)
+    assert _near_gap(chosen, [chosen, same, part, whole], score, T) == pytest.approx(0.2)
+
+
 def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
     from torchheat.matching import pipeline, select
 

@@ -337,14 +337,18 @@ def match(
         the farthest from the ones used), the 8 best after round 1 refined, the 6 best
         distinct upsampled, with every kind of ZoomOut candidate made from them.
         Their choice is kept when it is clear: its margin to the best different whole map
-        is at least 0.75 and it reads a direct orientation (>= 0.6; ``select._clear``).
-        Otherwise the full search runs (``source_landmarks`` features), reusing what the
-        first stage refined, and gives the map ``staged=False`` gives. ``info["search"]``
-        and the report say which search gave the map. False: the full search only
+        is at least 0.75, no partly different map (differing on over 10 % of the ZoomOut
+        rows) scores within 0.05 of it (``info["near_gap"]``), and it reads a direct
+        orientation (>= 0.6; ``select._clear``). Otherwise the full search runs
+        (``source_landmarks`` features), reusing what the first stage refined, and gives
+        the map ``staged=False`` gives. ``info["search"]`` and the report say which search
+        gave the map. False: the full search only
         (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 ->
         98.42 % under 0.25 (4 pairs changed); SCAPE 50: no pair changed by more than 2 points
-        (RESULTS.md, twelfth session). Never with ``partial=True``, nor in the filled way of
-        a piece (its gate was set on whole shapes; measured to lose on closed pieces).
+        (RESULTS.md, twelfth session); the near-gap test: TOSCA 284 99.33 -> 99.50 %, SCAPE
+        50 95.71 -> 96.28 %, 13 pairs to the full search (twenty-ninth session). Never with
+        ``partial=True``, nor in the filled way of a piece (its gate was set on whole
+        shapes; measured to lose on closed pieces).
     verify_stage : bool
         (``staged=True``) When the first stage's choice is clear but its map reads an
         isometry defect above 0.2 (its functional map's distance from orthogonal,
@@ -607,6 +611,8 @@ def match(
               # an ambiguous choice's descriptor errors (chosen, rival; _descriptor_tie_break)
               "tie_break": direct.zo_tie_break if method == "refine" else None,
               "hypothesis_images": hyp_images, "refine_samples": samples, "search": search,
+              # how much worse the best partly different candidate scored (select._near_gap)
+              "near_gap": direct.zo_near if method == "refine" else None,
               "zoomout_candidates": zo_diag,
               "sym_orientation": None if sym is None else sym.orientation,
               "lms0_sym": None if sym is None else (

@@ -71,6 +71,9 @@ class Hypothesis:
     """The chosen map: how much worse its best rival scored (None: no rival)."""
     zo_rival: Hypothesis | None = None
     """The chosen map: that rival (a different whole map)."""
+    zo_near: float | None = None
+    """The chosen map: how much worse the best partly different candidate scored
+    (``select._near_gap``; None: none)."""
     zo_tie_break: tuple[float, float] | None = None
     """An ambiguous choice: signature errors (chosen, rival), ``select._descriptor_tie_break``."""
     reoriented: bool = False
