@@ -1132,9 +1132,11 @@ def test_near_gap_counts_only_partly_different_candidates(mirror_pair):
     def score(r: Hypothesis) -> float:
         return r.energy
 
-    assert _near_gap(chosen, [chosen, same], score, T) is None
-    assert _near_gap(chosen, [chosen, same, part], score, T) == pytest.approx(0.3)
-    assert _near_gap(chosen, [chosen, same, part, whole], score, T) == pytest.approx(0.2)
+    assert _near_gap(chosen, [chosen, same], score, T) == (None, None)
+    gap, rival = _near_gap(chosen, [chosen, same, part], score, T)
+    assert gap == pytest.approx(0.3) and rival is part
+    gap, rival = _near_gap(chosen, [chosen, same, part, whole], score, T)
+    assert gap == pytest.approx(0.2) and rival is whole
 
 
 def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
@@ -1174,6 +1176,45 @@ def test_staged_search_keeps_a_clear_first_stage(mirror_pair, monkeypatch):
     seeds.clear()
     assert match(S, T, landmark=int(S.features[0])).info["search"] == "full"
     assert seeds == [8] and match(S, T, method="paper").info["search"] is None
+
+
+@pytest.mark.parametrize("same", [True, False])
+def test_near_tied_first_stage_asks_the_full_search_which_map(mirror_pair, monkeypatch, same):
+    from torchheat.matching import pipeline, select
+
+    S, T, perm, _ = mirror_pair
+    first = match(S, T)
+    assert first.info["search"] == "first stage"
+    real = select._near_gap
+    near_rivals = []
+
+    def near(chosen, cands, score, tgt):  # a partly different map close behind, always
+        gap, rival = real(chosen, cands, score, tgt)
+        rival = rival if rival is not None else next(r for r in cands if r is not chosen)
+        near_rivals.append(rival)
+        return 0.0, rival
+
+    monkeypatch.setattr(select, "_near_gap", near)
+    asked = []
+
+    def same_map(a, b, tgt):
+        asked.append(b)
+        return same
+
+    monkeypatch.setattr(pipeline, "_same_map", same_map)
+    again = match(S, T)
+    # the full search ran after the first stage, and its choice was compared with the first
+    # stage's choice and with the partly different map close behind it
+    assert "first_stage" in again.info["timings"]
+    assert len(asked) == (1 if same else 2)
+    if same:  # the same map as the first stage's choice: the full search's map
+        assert again.info["search"] == "full (first stage not clear)"
+        assert "near_search" not in again.info["timings"]
+    else:
+        assert any(b is near_rivals[0] for b in asked)  # compared with the near map too
+        assert again.info["search"].startswith("first stage (the full search chose neither")
+        assert "near_search" in again.info["timings"]
+        assert torch.equal(again.map, first.map)  # the first stage's map, kept
 
 
 def test_verify_stage_keeps_the_map_of_lower_isometry_defect(mirror_pair, monkeypatch,

@@ -56,10 +56,12 @@ from .select import (
     _DESCR_DIRECT,
     _ZO_SAME,
     _clear,
+    _clear_choice,
     _dense_partial_guarded,
     _dense_spectral,
     _descriptor_symmetry,
     _prefetch_choice,
+    _same_map,
     _spectral_choice,
     _zoomout_final,
 )
@@ -341,7 +343,9 @@ def match(
         rows) scores within 0.05 of it (``info["near_gap"]``), and it reads a direct
         orientation (>= 0.6; ``select._clear``). Otherwise the full search runs
         (``source_landmarks`` features), reusing what the first stage refined, and gives
-        the map ``staged=False`` gives. ``info["search"]`` and the report say which search
+        the map ``staged=False`` gives; except when the only doubt was that partly
+        different map and the full search chose neither it nor the first stage's choice:
+        the first stage's map is kept then. ``info["search"]`` and the report say which search
         gave the map. False: the full search only
         (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 ->
         98.42 % under 0.25 (4 pairs changed); SCAPE 50: no pair changed by more than 2 points
@@ -690,8 +694,10 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     the full search, which reuses the first stage's refined hypotheses and ZoomOuts (one memo
     for both; it also holds the landmark search's k-d trees). ``verify``: a clear first stage
     is checked against the full search too, and the direct map of lower isometry defect is
-    kept (``match(verify_stage=True)``). Returns ``_refine``'s answer and which search gave
-    it."""
+    kept (``match(verify_stage=True)``). A first stage that is clear but for a partly
+    different map close behind (``select._NEAR_MARGIN``) keeps its map when the full search
+    chooses neither that map nor its own choice. Returns ``_refine``'s answer and which
+    search gave it."""
     memo: dict = {"trees": trees}
     if staged and opts.source_landmarks > _FIRST_STAGE_SEEDS:
         # the first seeding features' hypotheses; kept when their choice is clear
@@ -722,6 +728,21 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             timings["verify_search"] = t_v
             return full, "full (lower isometry defect than the first stage's)"
         search = "full (first stage not clear)"
+        first_direct = out["direct"]
+        if _clear_choice(first_direct.zo_margin, first_direct.zo_orientation):
+            # clear but for a partly different map close behind (select._NEAR_MARGIN): the
+            # full search is asked which of the two it is; a third map is not an answer
+            kept_timings = dict(timings)
+            t_f = time.perf_counter()
+            full = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg,
+                           timings, memo)
+            d = full["direct"]
+            if (d.zo is not None and not _same_map(d, first_direct, tgt)
+                    and not _same_map(d, first_direct.zo_near_rival, tgt)):
+                timings.clear()
+                timings.update(kept_timings, near_search=time.perf_counter() - t_f)
+                return out, "first stage (the full search chose neither of its near-tied maps)"
+            return full, search
     else:
         search = "full"
     out = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg, timings, memo)

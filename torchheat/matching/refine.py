@@ -74,6 +74,8 @@ class Hypothesis:
     zo_near: float | None = None
     """The chosen map: how much worse the best partly different candidate scored
     (``select._near_gap``; None: none)."""
+    zo_near_rival: Hypothesis | None = None
+    """The chosen map: that partly different candidate."""
     zo_tie_break: tuple[float, float] | None = None
     """An ambiguous choice: signature errors (chosen, rival), ``select._descriptor_tie_break``."""
     reoriented: bool = False

@@ -261,7 +261,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     if (opt.tie_break and direct.zo_rival is not None
             and direct.zo_margin < AMBIGUOUS_BELOW):
         direct = _descriptor_tie_break(src, tgt, rows, direct)
-    direct.zo_near = _near_gap(
+    direct.zo_near, direct.zo_near_rival = _near_gap(
         direct, cands + before, lambda r: score(r, 1.0) if r.zo_score is None else r.zo_score,
         tgt)
     rest = [r for r in cands if r is not direct
@@ -490,18 +490,25 @@ _RIVAL_AGREE = 0.5  # a candidate agreeing with the chosen one on fewer samples 
 _NEAR_MARGIN = 0.05
 
 
-def _near_gap(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
-              tgt: PreparedShape) -> float | None:
-    """How much worse the best partly different candidate scored than the chosen one: a
-    candidate whose images of the ZoomOut rows agree with the chosen one's within 5 % of the
-    target's diagonal on fewer than ``_ZO_SAME`` of them (the test of
-    :func:`_distinct_hypotheses`). None without such a candidate."""
+def _same_map(a: Hypothesis, b: Hypothesis, tgt: PreparedShape) -> bool:
+    """Two ZoomOut candidates (on the same rows) are the same map: their images agree within
+    5 % of the target's diagonal on at least ``_ZO_SAME`` of the rows (the test of
+    :func:`_distinct_hypotheses`)."""
     Vt, _ = tgt.mesh.numpy()
-    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    return _agree(Vt, a.zo.images, b.zo.images, 0.05 * tgt.mesh.bbox_diagonal()) >= _ZO_SAME
+
+
+def _near_gap(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
+              tgt: PreparedShape) -> tuple[float | None, Hypothesis | None]:
+    """How much worse the best partly different candidate (not :func:`_same_map` as the
+    chosen one) scored than the chosen one, and that candidate; ``(None, None)`` without
+    one."""
     s0 = score(chosen)
-    gaps = [score(r) - s0 for r in cands if r is not chosen
-            and _agree(Vt, r.zo.images, chosen.zo.images, radius) < _ZO_SAME]
-    return min(gaps) if gaps else None
+    near = [r for r in cands if r is not chosen and not _same_map(r, chosen, tgt)]
+    if not near:
+        return None, None
+    best = min(near, key=score)
+    return float(score(best) - s0), best
 
 
 def _rival(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
