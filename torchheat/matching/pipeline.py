@@ -340,17 +340,17 @@ def match(
         distinct upsampled, with every kind of ZoomOut candidate made from them.
         Their choice is kept when it is clear: its margin to the best different whole map
         is at least 0.75, no partly different map (differing on over 10 % of the ZoomOut
-        rows) scores within 0.05 of it (``info["near_gap"]``), and it reads a direct
+        rows) scores within 0.1 of it (``info["near_gap"]``), and it reads a direct
         orientation (>= 0.6; ``select._clear``). Otherwise the full search runs
         (``source_landmarks`` features), reusing what the first stage refined, and gives
         the map ``staged=False`` gives; except when the only doubt was that partly
         different map and the full search chose neither it nor the first stage's choice:
-        the first stage's map is kept then. ``info["search"]`` and the report say which search
-        gave the map. False: the full search only
-        (``--no-staged``). TOSCA 284 pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 ->
-        98.42 % under 0.25 (4 pairs changed); SCAPE 50: no pair changed by more than 2 points
+        the first stage's map is kept then. ``info["search"]`` and the report say which
+        search gave the map. False: the full search only (``--no-staged``). TOSCA 284
+        pairs: 2.55 -> 1.84 s per pair in a batch, 98.44 -> 98.42 % under 0.25 (4 pairs
+        changed); SCAPE 50: no pair changed by more than 2 points
         (RESULTS.md, twelfth session); the near-gap test: TOSCA 284 99.33 -> 99.50 %, SCAPE
-        50 95.71 -> 96.28 %, 13 pairs to the full search (twenty-ninth session). Never with
+        50 95.71 -> 96.28 %, 22 pairs to the full search (twenty-ninth session). Never with
         ``partial=True``, nor in the filled way of a piece (its gate was set on whole
         shapes; measured to lose on closed pieces).
     verify_stage : bool
