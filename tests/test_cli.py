@@ -106,6 +106,17 @@ def test_match_fixed_pair_and_paper_method(pair, capsys):
     assert np.mean(f == inv) >= 0.99
     stdout = capsys.readouterr().out
     assert f"({p}, {int(inv[p])})" in stdout and "timings" in stdout
+    assert "search:" not in stdout  # the paper's pipeline has no staged search
+
+
+def test_match_prints_which_search_gave_the_map(pair, capsys):
+    src, tgt, inv, d = pair
+    out = d / "staged.txt"
+    assert main(["match", str(src), str(tgt), "-o", str(out), "--threads", "1"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("search: ")]
+    assert len(lines) == 1
+    assert lines[0] in ("search: first stage", "search: full (first stage not clear)")
+    assert np.mean(read_map(out) == inv) >= 0.99
 
 
 def test_symmetry_writes_map(pair, capsys):

@@ -430,6 +430,9 @@ def _report(corr: Any, *, label: str = "map", k: int = 5) -> None:
             if tb:
                 print(f"settled by the wave kernel signatures: mean log-WKS error {tb[0]:.4f} "
                       f"against the rival's {tb[1]:.4f}")
+    search = corr.info.get("search")
+    if search:  # which stage of the staged search gave the map (match(staged=...))
+        print(f"search: {search}")
     timings = corr.info.get("timings", {})
     if timings:
         print("timings: " + ", ".join(f"{name} {sec:.2f} s" for name, sec in timings.items()))
