@@ -615,7 +615,8 @@ def match(
               # an ambiguous choice's descriptor errors (chosen, rival; _descriptor_tie_break)
               "tie_break": direct.zo_tie_break if method == "refine" else None,
               "hypothesis_images": hyp_images, "refine_samples": samples, "search": search,
-              # how much worse the best partly different candidate scored (select._near_gap)
+              # how much worse the best partly different candidate scored (select._near_gap;
+              # after polishing it can be negative: a candidate as it was before scored better)
               "near_gap": direct.zo_near if method == "refine" else None,
               "zoomout_candidates": zo_diag,
               "sym_orientation": None if sym is None else sym.orientation,
