@@ -649,6 +649,14 @@ def bench_threads(args) -> None:
     print(table(out_rows, ("stage", "seconds", "same bits as one thread")))
 
 
+def _pair_args(sub_parser: argparse.ArgumentParser,
+               source: str = "source mesh (default: the generic mesh)",
+               target: str = "target mesh (default: a permuted copy)") -> None:
+    """A sub-command's ``--source`` / ``--target`` mesh files."""
+    sub_parser.add_argument("--source", help=source)
+    sub_parser.add_argument("--target", help=target)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -660,22 +668,19 @@ def main(argv=None) -> None:
     h.add_argument("--threads", type=int, default=None)
     h.add_argument("--repeat", type=int, default=3)
     m = sub.add_parser("match", help="matching stages: torchheat vs a plain scipy pipeline")
-    m.add_argument("--source", help="source mesh (adds a real pair to the generic one)")
-    m.add_argument("--target", help="target mesh")
+    _pair_args(m, "source mesh (adds a real pair to the generic one)", "target mesh")
     m.add_argument("--threads", type=int, default=None)
     f = sub.add_parser("fmap", help="descriptor functional map: exact solve vs scipy L-BFGS-B")
-    f.add_argument("--source", help="source mesh (default: the generic mesh)")
-    f.add_argument("--target", help="target mesh (default: a permuted copy)")
+    _pair_args(f)
     f.add_argument("--k", type=int, default=30)
     f.add_argument("--threads", type=int, default=1)
     q = sub.add_parser("partial", help="partial functional map: exact solve vs scipy L-BFGS-B")
-    q.add_argument("--source", help="the piece (default: 60 %% of the generic mesh)")
-    q.add_argument("--target", help="the whole (default: the generic mesh)")
+    _pair_args(q, "the piece (default: 60 %% of the generic mesh)",
+               "the whole (default: the generic mesh)")
     q.add_argument("--threads", type=int, default=1)
     fi = sub.add_parser("fine", help="fine maps (match(fine_k=K)): stages, dense search vs "
                                      "scipy's k-d tree")
-    fi.add_argument("--source", help="source mesh (default: the generic mesh)")
-    fi.add_argument("--target", help="target mesh (default: a permuted copy)")
+    _pair_args(fi)
     fi.add_argument("--k", type=int, default=200)
     fi.add_argument("--threads", type=int, default=1)
     g = sub.add_parser("gtcheck", help="ground-truth disagreement: vectorised vs a Python loop")
@@ -685,8 +690,7 @@ def main(argv=None) -> None:
     g.add_argument("--repeat", type=int, default=3)
     th = sub.add_parser("threads", help="two torch threads: ZoomOut candidates side by side; "
                                         "eigensolve workers during import torch")
-    th.add_argument("--source", help="source mesh (default: the generic mesh)")
-    th.add_argument("--target", help="target mesh (default: a permuted copy)")
+    _pair_args(th)
     th.add_argument("--candidates", type=int, default=16)
     th.add_argument("--repeat", type=int, default=3)
     args = p.parse_args(argv)

@@ -1197,11 +1197,11 @@ def test_near_tied_first_stage_asks_the_full_search_which_map(mirror_pair, monke
     monkeypatch.setattr(select, "_near_gap", near)
     asked = []
 
-    def same_map(a, b, tgt):
+    def same_map(a, b):
         asked.append(b)
         return same
 
-    monkeypatch.setattr(pipeline, "_same_map", same_map)
+    monkeypatch.setattr(pipeline, "_same_as", lambda tgt: same_map)
     again = match(S, T)
     # the full search ran after the first stage, and its choice was compared with the first
     # stage's choice and with the partly different map close behind it

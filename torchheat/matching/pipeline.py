@@ -61,7 +61,7 @@ from .select import (
     _dense_spectral,
     _descriptor_symmetry,
     _prefetch_choice,
-    _same_map,
+    _same_as,
     _spectral_choice,
     _zoomout_final,
 )
@@ -737,9 +737,9 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             t_f = time.perf_counter()
             full = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg,
                            timings, memo)
-            d = full["direct"]
-            if (d.zo is not None and not _same_map(d, first_direct, tgt)
-                    and not _same_map(d, first_direct.zo_near_rival, tgt)):
+            d, same = full["direct"], _same_as(tgt)
+            if (d.zo is not None and not same(d, first_direct)
+                    and not same(d, first_direct.zo_near_rival)):
                 timings.clear()
                 timings.update(kept_timings, near_search=time.perf_counter() - t_f)
                 return out, "first stage (the full search chose neither of its near-tied maps)"

@@ -493,21 +493,23 @@ _RIVAL_AGREE = 0.5  # a candidate agreeing with the chosen one on fewer samples 
 _NEAR_MARGIN = 0.1
 
 
-def _same_map(a: Hypothesis, b: Hypothesis, tgt: PreparedShape) -> bool:
-    """Two ZoomOut candidates (on the same rows) are the same map: their images agree within
-    5 % of the target's diagonal on at least ``_ZO_SAME`` of the rows (the test of
-    :func:`_distinct_hypotheses`)."""
+def _same_as(tgt: PreparedShape) -> Callable[[Hypothesis, Hypothesis], bool]:
+    """Whether two ZoomOut candidates on ``tgt`` (on the same rows) are the same map: their
+    images agree within 5 % of the target's diagonal on at least ``_ZO_SAME`` of the rows (the
+    test of :func:`_distinct_hypotheses`). The target's vertices are copied once, here, for
+    every comparison."""
     Vt, _ = tgt.mesh.numpy()
-    return _agree(Vt, a.zo.images, b.zo.images, 0.05 * tgt.mesh.bbox_diagonal()) >= _ZO_SAME
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    return lambda a, b: _agree(Vt, a.zo.images, b.zo.images, radius) >= _ZO_SAME
 
 
 def _near_gap(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
               tgt: PreparedShape) -> tuple[float | None, Hypothesis | None]:
-    """How much worse the best partly different candidate (not :func:`_same_map` as the
-    chosen one) scored than the chosen one, and that candidate; ``(None, None)`` without
-    one."""
+    """How much worse the best partly different candidate (not :func:`_same_as` the chosen
+    one) scored than the chosen one, and that candidate; ``(None, None)`` without one."""
     s0 = score(chosen)
-    near = [r for r in cands if r is not chosen and not _same_map(r, chosen, tgt)]
+    same = _same_as(tgt)
+    near = [r for r in cands if r is not chosen and not same(r, chosen)]
     if not near:
         return None, None
     best = min(near, key=score)
