@@ -482,6 +482,10 @@ def test_an_ambiguous_choice_records_its_rival_map(monkeypatch):
     assert row["ambiguous"] == 2 and row["rival_right"] == 1
     # which search gave the map is recorded and counted (match(staged=True))
     assert rec["search"] in ("first stage", "full (first stage not clear)")
+    gap = corr.info["near_gap"]  # same pair, same choice: the same gap, in the report too
+    assert (rec["near_gap"] is None) == (gap is None) == ("near_gap" not in corr.report())
+    if gap is not None:
+        assert rec["near_gap"] == pytest.approx(gap) == corr.report()["near_gap"]
     two = [{**rec, "search": "first stage"}, {**rec, "search": "full (first stage not clear)"}]
     assert batch._row("overall", "all", two)["first_stage"] == 1
     assert batch._row("overall", "all", [{**rec, "search": None}])["first_stage"] is None

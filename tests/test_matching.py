@@ -1091,6 +1091,32 @@ def test_polished_option_reaches_the_full_search(mirror_pair, monkeypatch):
     assert staged.info["search"] == "first stage" and len(calls) == 1
 
 
+def test_a_chosen_map_that_polishing_made_worse_is_kept_as_it_was(mirror_pair, monkeypatch):
+    """Polishing that raises every polished candidate's residual (here: x1.5, images kept)
+    must not coarsen the choice: the chosen candidate is taken as it was before polishing."""
+    from torchheat.matching import select
+
+    S, T, perm, _ = mirror_pair
+    real = select._polish_candidates
+    worse: list[float] = []
+
+    def polish_worse(*a, **k):
+        out = real(*a, **k)
+        for r in out:
+            if r.polished:
+                r.zo = dataclasses.replace(r.zo, residual=1.5 * r.zo.residual)
+                worse.append(r.zo.residual)
+        return out
+
+    monkeypatch.setattr(select, "_polish_candidates", polish_worse)
+    corr = match(S, T, staged=False)
+    assert worse  # some candidate was polished (and made worse)
+    chosen = [d for d in corr.info["zoomout_candidates"] if d[4]]
+    assert len(chosen) == 1 and not chosen[0][8]  # as it was: not polished
+    assert chosen[0][2] not in worse
+    assert float((corr.map == torch.as_tensor(perm)).double().mean()) > 0.99
+
+
 def test_clear_needs_a_margin_and_a_direct_orientation():
     from torchheat.matching.select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
 

@@ -221,6 +221,7 @@ tosca_remeshed_5k_symmetry`).
         "margin": None if quality is None else quality.margin,
         "ambiguous": None if quality is None else bool(quality.ambiguous),
         "search": corr.info.get("search"),
+        "near_gap": None if corr.info.get("near_gap") is None else float(corr.info["near_gap"]),
         "tie_break": corr.info.get("tie_break"),
     }
     if quality is not None and quality.ambiguous and corr.has_rival_map:

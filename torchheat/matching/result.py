@@ -128,7 +128,8 @@ class Correspondence:
     def report(self) -> dict:
         """A JSON-able summary: torchheat's version, the options given that differ from
         :func:`~torchheat.match`'s defaults, vertex counts, method, the search that gave the map
-        (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), the tie-break of an
+        (``match(staged=True)``: ``"first stage"`` or ``"full ..."``), the near gap (how much
+        worse the best partly different candidate scored), the tie-break of an
         ambiguous choice (``[chosen error, rival error]``), landmarks, orientation, quality,
         suspect, timings (what ``torchheat match --report`` writes, with the file
         names)."""
@@ -147,6 +148,9 @@ class Correspondence:
             "zoomout": self.info.get("zoomout"),
             "fine_k": self.info.get("fine_k"),
             **({"search": self.info["search"]} if self.info.get("search") else {}),
+            # how much worse the best partly different candidate scored (select._near_gap)
+            **({"near_gap": float(self.info["near_gap"])}
+               if self.info.get("near_gap") is not None else {}),
             # an ambiguous choice: wave kernel signature errors of the map and of its rival
             **({"tie_break": [float(e) for e in self.info["tie_break"]]}
                if self.info.get("tie_break") else {}),

@@ -175,7 +175,11 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     samples (+-0.7..0.95 instead of +-0.1..0.5 on the 48-sample maps of humans), tells the
     direct map from the mirror one. Score: ``log(residual) -+ orientation_weight *
     orientation``. ``polish`` (the full search): the hypotheses' refinement of sample images,
-    applied to the candidates near the best before the choice (:func:`_polish_candidates`).
+    applied to the candidates near the best before the choice (:func:`_polish_candidates`);
+    the choice is made among the polished candidates, but a chosen candidate that scored
+    better before polishing is taken as it was (polishing restarts ZoomOut from the 48
+    samples and can land a right map in a coarser minimum: TOSCA 284, 28 such maps, mean
+    eps 0.0230 -> 0.0228, none worse under 0.25; RESULTS.md, thirtieth session).
     A choice within ``quality.AMBIGUOUS_BELOW`` of its rival is settled by
     :func:`_descriptor_tie_break`.
     """
@@ -241,17 +245,23 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                                             tear, memo)
             timings["zoomout_reorient"] = time.perf_counter() - t_r
         before: list[dict] = []  # candidates polishing changed or dropped, as they were
+        was: dict[int, Hypothesis] = {}  # a polished candidate's id -> itself as it was
         if polish is not None and at is not None:
             t_p = time.perf_counter()
-            before = [dataclasses.replace(r, zo_score=score(r, 1.0)) for r in cands]
+            was = {id(r): dataclasses.replace(r, zo_score=score(r, 1.0)) for r in cands}
             cands = _polish_candidates(src, tgt, rows, at, samples, cands,
                                        lambda r: score(r, 1.0), polish, k_sel, targets,
                                        orient, memo)
             kept = {id(r.zo) for r in cands}
-            before = [b for b in before if id(b.zo) not in kept]
+            before = [b for b in was.values() if id(b.zo) not in kept]
+            was = {i: b for i, b in was.items() if id(b.zo) not in kept}
             timings["zoomout_polish"] = time.perf_counter() - t_p
 
     direct = min(cands, key=lambda r: score(r, 1.0))
+    polished_direct = direct
+    if id(direct) in was and was[id(direct)].zo_score < score(direct, 1.0):
+        # the chosen map scored better as it was: polishing only coarsened it
+        direct = was[id(direct)]
     # the margin: to the best different whole map, polished or as it was before (a choice
     # that polishing overturned, or that a rival lost only by polishing, is not clear)
     margin, direct.zo_rival = _rival(
@@ -264,7 +274,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     direct.zo_near, direct.zo_near_rival = _near_gap(
         direct, cands + before, lambda r: score(r, 1.0) if r.zo_score is None else r.zo_score,
         tgt)
-    rest = [r for r in cands if r is not direct
+    rest = [r for r in cands if r is not direct and r is not polished_direct
             and (not opt.orientation or r.zo_orientation < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
     # diagnostics: (rows, images, residual, orientation, chosen, landmark-free, tear, kind,
