@@ -1117,6 +1117,81 @@ def test_a_chosen_map_that_polishing_made_worse_is_kept_as_it_was(mirror_pair, m
     assert float((corr.map == torch.as_tensor(perm)).double().mean()) > 0.99
 
 
+def test_half_turn_partner_undoes_a_half_turn():
+    """A candidate that is the right map turned by a half-turn (left/right and front/back
+    swapped together: a rotation about the x axis of a shape symmetric in y and z) gets the
+    right map as its half-turn partner, given the half-turn's functional map."""
+    from torchheat.matching.prepared import _fps
+    from torchheat.matching.select import _half_turn_partners
+    from torchheat.matching.zoomout import ZoomOutResult, functional_map
+
+    m = trimesh.creation.icosphere(3)
+    V = np.array(m.vertices)
+    x, y, z = V.T
+    V = V * np.array([1.0, 0.7, 0.5]) * (1 + 0.15 * np.sin(3 * x + 1) * np.cos(2 * z)
+                                         + 0.1 * np.cos(4 * y**2 + x))[:, None]
+    V[:, 0] += 0.2 * z**2  # symmetric in y and z, not in x: one half-turn, about x
+    F = np.asarray(m.faces, dtype=np.int64)
+    d, rx = cKDTree(V).query(V * np.array([1.0, -1.0, -1.0]))
+    assert d.max() < 1e-9 and (rx != np.arange(len(V))).mean() > 0.9
+    W, G, perm = moved_copy(V, F, seed=3)
+    S, T = prepare(Mesh(V, F)), prepare(Mesh(W, G))
+    rx_t = np.empty_like(rx)
+    rx_t[perm] = perm[rx]  # the half-turn on the copy's numbering
+    phi = T.hk.eigenvectors
+    rotation = functional_map(phi, phi, torch.arange(T.n), torch.as_tensor(rx_t), 60)
+    rows, targets = _fps(S, 300), _fps(T, T.n)
+    truth = perm[rows.numpy()]
+    turned = torch.as_tensor(perm[rx[rows.numpy()]])
+    assert (turned.numpy() == truth).mean() < 0.05
+    cand = Hypothesis(lms0=[], g=turned[:10], zo=ZoomOutResult(rows, turned, None, 1.0),
+                      zo_orientation=0.9)
+    out = _half_turn_partners(S, T, rows, torch.arange(10), [cand], lambda r: 0.0, rotation,
+                              60, targets, lambda im: 0.5)
+    assert len(out) == 1 and out[0].half_turn and out[0].zo_orientation == 0.5
+    assert (out[0].zo.images.numpy() == truth).mean() > 0.95
+    assert torch.equal(out[0].g, out[0].zo.images[:10])
+    # a candidate reading a reversed orientation gets no partner (the mirror partners' job)
+    cand.zo_orientation = -0.9
+    assert _half_turn_partners(S, T, rows, torch.arange(10), [cand], lambda r: 0.0, rotation,
+                               60, targets, lambda im: 0.5) == []
+
+
+@pytest.mark.skipif(not (_SHARED / "scape").is_dir(), reason="no shared/data")
+def test_half_turns_right_a_scape_pair_the_score_had_no_right_candidate_for():
+    """SCAPE mesh007 -> mesh009: without half-turn partners the full search chooses a
+    half-turn (no candidate near the right map); mesh009's half-turn self-map, applied to
+    it, gives the right map. The self-map moves the body (it is no near-identity) and is an
+    involution (R o R ~ identity)."""
+    from types import SimpleNamespace
+
+    from torchheat.datasets import scape
+    from torchheat.matching.pipeline import _self_rotation
+    from torchheat.matching.refine import _agree
+    from torchheat.matching.zoomout import spectral_map
+
+    pair = next(p for p in scape(_SHARED, pairs=[[7, 9]]))
+    S, T = prepare(pair.source.mesh), prepare(pair.target.mesh)
+    Vt, _ = T.mesh.numpy()
+    radius = 0.05 * T.mesh.bbox_diagonal()
+    on = match(S, T)
+    assert on.info["search"].startswith("full")
+    truth = pair.gt_tgt[torch.argsort(pair.gt_src)]  # SCAPE: one numbering, all vertices
+    assert _agree(Vt, on.map, truth, radius) > 0.9
+    assert any(d[7] == "half-turn" for d in on.info["zoomout_candidates"])
+    off = match(S, T, half_turns=False)
+    assert _agree(Vt, off.map, truth, radius) < 0.3
+    opt = SimpleNamespace(zoomout_samples=500, use_hks=True, engine="auto", n_candidates=8,
+                          refine_log_floor=None)  # match's defaults, the ones read
+    C = _self_rotation(T, opt)
+    assert C is not None and C is _self_rotation(T, opt)  # cached on the shape
+    v = torch.arange(0, T.n, 7)
+    phi = T.hk.eigenvectors
+    once = spectral_map(phi, phi, C, v)[1]
+    twice = spectral_map(phi, phi, C, once)[1]
+    assert _agree(Vt, twice, v, radius) > 0.8 > 0.1 > _agree(Vt, once, v, radius)
+
+
 def test_clear_needs_a_margin_and_a_direct_orientation():
     from torchheat.matching.select import _CLEAR_MARGIN, _ZO_ORIENT_CLIP, _clear
 

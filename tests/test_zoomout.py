@@ -222,11 +222,18 @@ def test_cli_report_and_no_zoomout(spot_pair, tmp_path):
                  "--report", str(rep), "--threads", "1"]) == 0
     r5 = json.loads(rep.read_text())
     assert r5["search"] == "full" and "zoomout_polish" in r5["timings"]
+    assert "zoomout_turn" in r5["timings"]  # the half-turn partners were considered
     m5 = np.loadtxt(tmp_path / "m5.txt", dtype=np.int64)
     assert (m5 == perm.numpy()).mean() >= 0.99
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m6.txt"), "--no-staged",
                  "--no-polished", "--report", str(rep), "--threads", "1"]) == 0
-    assert "zoomout_polish" not in json.loads(rep.read_text())["timings"]
+    r6 = json.loads(rep.read_text())
+    assert "zoomout_polish" not in r6["timings"] and "zoomout_turn" in r6["timings"]
+    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m6.txt"), "--no-staged",
+                 "--no-half-turns", "--report", str(rep), "--threads", "1"]) == 0
+    r6 = json.loads(rep.read_text())
+    assert "zoomout_polish" in r6["timings"] and "zoomout_turn" not in r6["timings"]
+    assert r6["options"]["half_turns"] is False
     assert main(["match", str(a), str(b), "-o", str(tmp_path / "m7.txt"), "--no-tie-break",
                  "--report", str(rep), "--threads", "1"]) == 0
     assert (np.loadtxt(tmp_path / "m7.txt", dtype=np.int64) == perm.numpy()).mean() >= 0.99

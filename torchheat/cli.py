@@ -65,6 +65,10 @@ _CHOICE_SWITCHES = (
      "choose among the ZoomOut candidates as they are; by default, when the full search runs, "
      "the candidates within the clear margin of the best are refined again before the choice "
      "(each distinct map's sample images: correspondence augmentation, then ZoomOut)"),
+    ("--no-half-turns", "half_turns",
+     "leave out the half-turn partners of the full search's best orientation-preserving "
+     "ZoomOut candidates (each composed with the target's half-turn self-map: left/right and "
+     "front/back swapped together)"),
     ("--no-tie-break", "tie_break",
      "keep an ambiguous choice as the ZoomOut score made it; by default the chosen map or its "
      "rival, whichever better keeps the wave kernel signatures, is kept"),

@@ -42,6 +42,7 @@ class _Options:
     trimmed_twins: bool = True
     reoriented: bool = True
     polished: bool = True  # _spectral_choice polishes the candidates of an unclear choice
+    half_turns: bool = True  # ... and adds their half-turn partners first
     tie_break: bool = True  # an ambiguous choice goes by the wave kernel signatures
 
 

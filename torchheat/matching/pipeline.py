@@ -55,12 +55,15 @@ from .result import Correspondence, _numbering
 from .select import (
     _DESCR_DIRECT,
     _ZO_SAME,
+    _ZO_SELECT_K,
+    _ZO_TARGETS,
     _clear,
     _clear_choice,
     _dense_partial_guarded,
     _dense_spectral,
     _descriptor_symmetry,
     _prefetch_choice,
+    _rotation_map,
     _same_as,
     _spectral_choice,
     _zoomout_final,
@@ -147,6 +150,7 @@ def match(
     trimmed_twins: bool = True,
     reoriented: bool = True,
     polished: bool = True,
+    half_turns: bool = True,
     tie_break: bool = True,
     staged: bool = True,
     verify_stage: bool = False,
@@ -326,6 +330,15 @@ def match(
         clean form (``select._polish_candidates``). TOSCA 284 pairs: 98.5 -> 99.3 % under
         0.25 (the three michael half-turns right), SCAPE 50: see RESULTS.md, twentieth
         session; ``--no-polished``.
+    half_turns : bool
+        (``zoomout=True``, two whole shapes) When the full search runs, give the 3 best
+        orientation-preserving ZoomOut candidates their half-turn partners before polishing:
+        each composed with the target's half-turn self-map (left/right and front/back
+        swapped together, made from its self-symmetry; ``select._rotation_map``), where the
+        target has a clean one. A half-turn chosen because no candidate was near the right
+        map then meets the right map. SCAPE 50: 96.28 -> 97.86 % (mesh007 -> mesh009 21 ->
+        100 %), no other map changed on TOSCA 284, SCAPE 50 or the held-out michael 260 and
+        SCAPE 60 (RESULTS.md, thirtieth session; ``--no-half-turns``).
     tie_break : bool
         (``zoomout=True``, two shapes) Settle an ambiguous choice (the best different whole map
         scored within 0.15 of it) by the wave kernel signatures: the chosen map or its rival,
@@ -566,6 +579,7 @@ def match(
                 descriptor_seed=descriptor_seed,
                 trimmed_twins=trimmed_twins, reoriented=reoriented,
                 polished=polished and unit_ratio is None,  # not measured on pieces
+                half_turns=half_turns,
                 tie_break=tie_break,
                 partial_ratio=None if part is None else part.ratio)
             whole = part is None and unit_ratio is None  # not a piece, at either scale
@@ -708,7 +722,7 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
             refine_keep=min(_FIRST_STAGE_KEEP, opts.refine_keep or _FIRST_STAGE_KEEP),
             zoomout_hypotheses=min(_FIRST_STAGE_CANDIDATES, opts.zoomout_hypotheses),
             # an ambiguous first stage is never clear: the full search decides
-            polished=False, tie_break=False)
+            polished=False, half_turns=False, tie_break=False)
         out = _refine(src, tgt, p, cands, p2, True, score_rows, first, bg, timings, memo)
         timings["first_stage"] = time.perf_counter() - t_q
         if _clear(out["direct"]):
@@ -888,7 +902,8 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             lambda shape, v: _symmetries_at(shape, v, opt.use_hks, opt.engine, opt.n_candidates,
                                             opt.refine_log_floor), memo,
             polish=(lambda g0: refiner.augment(g0, samples, opt.refine_iterations)[1])
-            if opt.polished else None)
+            if opt.polished else None,
+            rotation=(lambda: _self_rotation(tgt, opt)) if opt.half_turns else None)
     else:
         descr = [r for r in good if not r.lms0] if opt.partial_ratio is not None else []
         if descr and len(good) > 1:
@@ -1081,6 +1096,27 @@ def _symmetries_at(shape, vertices, use_hks, engine, n_candidates, log_floor=Non
     v = torch.as_tensor(vertices)
     return [_Refiner(shape, shape, S, log_floor).map(G, v)[1]
             for S, G in _self_symmetries(shape, use_hks, engine, n_candidates, log_floor)]
+
+
+def _self_rotation(shape: PreparedShape, opt: _Options) -> torch.Tensor | None:
+    """The functional map of the shape's half-turn self-map (``select._rotation_map`` of its
+    self-symmetry on farthest-point rows), or None; cached on the shape beside its
+    self-symmetry."""
+    key = _sym_key(shape, opt.refine_log_floor)
+    cache = shape.caches.self_rotation
+    if key not in cache:
+        # at the shape's own times, as its self-symmetry (not at the source's a target is
+        # re-timed to: the cached map would depend on which pair came first)
+        own = shape.hk.times if shape.own_times is None else shape.own_times
+        if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
+            shape = _role_copy(shape, own)
+        rows = _fps(shape, opt.zoomout_samples)
+        mirror = _symmetry_at(shape, rows, opt.use_hks, opt.engine, opt.n_candidates,
+                              opt.refine_log_floor)
+        k = min(_ZO_SELECT_K, shape.hk.eigenvectors.shape[1])
+        cache[key] = None if mirror is None else _rotation_map(
+            shape, rows, mirror, _fps(shape, _ZO_TARGETS), k)
+    return cache[key]
 
 
 def _symmetry_at(shape, vertices, use_hks, engine, n_candidates, log_floor=None

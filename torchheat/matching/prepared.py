@@ -48,6 +48,9 @@ class ShapeCaches:
         self-symmetry (``pipeline._self_symmetry``), computed at the shape's own times.
     self_symmetry_alternates : dict
         Same keys: up to two distinct orientation-reversing self-maps (``_self_symmetries``).
+    self_rotation : dict
+        Same keys: the functional map of the shape's half-turn self-map, or None where it has
+        no clean one (``pipeline._self_rotation``, ``select._rotation_map``).
     fmap_operators : dict
         ``(k, n_descr, eigenpairs) -> (red, mult, orient)`` (:func:`.fmap.shape_operators`).
     filled_mesh : Mesh or None
@@ -67,6 +70,7 @@ class ShapeCaches:
     fps: torch.Tensor | None = None
     self_symmetry: dict = field(default_factory=dict)
     self_symmetry_alternates: dict = field(default_factory=dict)
+    self_rotation: dict = field(default_factory=dict)
     fmap_operators: dict = field(default_factory=dict)
     filled_mesh: Mesh | None = None
     filled_eigenpairs: tuple | None = None

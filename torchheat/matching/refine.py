@@ -82,6 +82,8 @@ class Hypothesis:
     """A reoriented twin (``select._reoriented_candidates``)."""
     trimmed: bool = False
     """An orientation-trimmed twin (``select._trimmed_candidates``)."""
+    half_turn: bool = False
+    """A half-turn partner (``select._half_turn_partners``)."""
     polished: bool = False
     """Polished by correspondence augmentation before the choice (``select._polish_candidates``)."""
     # --- the chosen maps' outputs

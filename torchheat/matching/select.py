@@ -163,7 +163,8 @@ SymmetriesAt = Callable[[PreparedShape, torch.Tensor], list[torch.Tensor]]
 def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
                      pool: list[dict], opt: _Options, timings: dict,
                      symmetries_at: SymmetriesAt, memo: dict | None = None,
-                     polish: Callable[[torch.Tensor], torch.Tensor] | None = None
+                     polish: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                     rotation: Callable[[], torch.Tensor | None] | None = None
                      ) -> tuple[Hypothesis, Hypothesis | None, list]:
     """Choose the direct and symmetric maps among refined hypotheses by ZoomOut.
 
@@ -180,6 +181,9 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     better before polishing is taken as it was (polishing restarts ZoomOut from the 48
     samples and can land a right map in a coarser minimum: TOSCA 284, 28 such maps, mean
     eps 0.0230 -> 0.0228, none worse under 0.25; RESULTS.md, thirtieth session).
+    ``rotation`` (the full search): returns the functional map of the target's half-turn
+    self-map (None: it has none); the best orientation-preserving candidates get their
+    half-turn partners, before polishing (:func:`_half_turn_partners`).
     A choice within ``quality.AMBIGUOUS_BELOW`` of its rival is settled by
     :func:`_descriptor_tie_break`.
     """
@@ -246,6 +250,14 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             timings["zoomout_reorient"] = time.perf_counter() - t_r
         before: list[dict] = []  # candidates polishing changed or dropped, as they were
         was: dict[int, Hypothesis] = {}  # a polished candidate's id -> itself as it was
+        if rotation is not None and at is not None:
+            t_h = time.perf_counter()
+            C_rot = rotation()
+            if C_rot is not None:
+                cands += _half_turn_partners(src, tgt, rows, at, cands,
+                                             lambda r: score(r, 1.0), C_rot, k_sel, targets,
+                                             orient, memo)
+            timings["zoomout_turn"] = time.perf_counter() - t_h
         if polish is not None and at is not None:
             t_p = time.perf_counter()
             was = {id(r): dataclasses.replace(r, zo_score=score(r, 1.0)) for r in cands}
@@ -283,7 +295,8 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     listed = cands + ([] if any(r is direct for r in cands) else [direct])
     diag = [(r.zo.rows, r.zo.images, r.zo.residual, r.zo_orientation, r is direct,
              r.descriptor_seed, float("nan") if r.zo_tear is None else r.zo_tear,
-             "reoriented" if r.reoriented else "trimmed" if r.trimmed else "", r.polished)
+             "reoriented" if r.reoriented else "trimmed" if r.trimmed
+             else "half-turn" if r.half_turn else "", r.polished)
             for r in listed]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -400,6 +413,97 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
         if at_samples is not None:
             new.g = zo.images[at_samples]
         out.append(new)
+    return out
+
+
+_TURN_TOP = 3  # best-scored orientation-preserving candidates that get a half-turn partner
+_TURN_PARENT = 0.3  # ... reading at least this orientation
+_TURN_CLEAN = 0.5  # a half-turn self-map reads at least this orientation
+_TURN_FIXED = 0.1  # ... and leaves fewer of its rows than this in place (5 % of the diameter)
+
+
+def _rotation_map(shape: PreparedShape, rows: torch.Tensor, mirror: torch.Tensor,
+                  targets: torch.Tensor, k: int) -> torch.Tensor | None:
+    """The ``k x k`` functional map of a shape's half-turn self-map, or None where it has no
+    clean one.
+
+    A human body has, beside its left/right reflection ``sigma``, an approximate front/back
+    one; composed, they make a half-turn about the body's axis, orientation-preserving. It is
+    made as the reoriented twin of ``sigma`` (as :func:`_reoriented_candidates` makes one):
+    :func:`~torchheat.matching.fmap.landmark_functional_map` of the first
+    ``_REORIENT_POINTS`` rows and their mirror images (parts kept where ``sigma`` sends
+    them, the orientation term turning them to face the other way), then ZoomOut to ``k``
+    modes. Kept only when clean: orientation at least ``_TURN_CLEAN`` and fewer than
+    ``_TURN_FIXED`` of the rows left in place (a near-identity is no half-turn). Cost: one
+    30-mode functional map and one ZoomOut (~0.1 s at 12.5k vertices).
+
+    Parameters
+    ----------
+    shape : PreparedShape
+    rows : torch.Tensor, int64, shape (s,)
+        Farthest-point rows of the shape (the first ``_REORIENT_POINTS`` tie the map).
+    mirror : torch.Tensor, int64, shape (s,)
+        Their images under the shape's self-symmetry.
+    targets : torch.Tensor, int64, shape (t,)
+        Vertices the ZoomOut steps map to.
+    k : int
+        Size of the map (at most the shape's eigenpairs).
+
+    Returns
+    -------
+    torch.Tensor, float64, shape (k, k), or None
+        ``C`` with ``Phi C ~ Phi[R]`` (:mod:`.zoomout`'s convention).
+    """
+    phi = shape.hk.eigenvectors
+    k0 = min(_REORIENT_K, k)
+    C = landmark_functional_map(shape, shape, rows[:_REORIENT_POINTS],
+                                mirror[:_REORIENT_POINTS], k=k0)
+    j = spectral_map(phi, phi[targets], C, rows)[1]
+    zo = zoomout(phi, phi, rows, targets[j], rows, k_start=k0, k_end=k, step=_ZO_STEP,
+                 targets=targets)
+    V, _ = shape.mesh.numpy()
+    pos = torch.full((shape.n,), -1, dtype=torch.int64)
+    pos[rows] = torch.arange(rows.numel())
+    o = _orientation(shape, shape, _triangles(V, rows.numpy()),
+                     lambda i: zo.images[pos[i]].numpy())
+    fixed = _agree(V, zo.images, rows, 0.05 * shape.mesh.bbox_diagonal())
+    return zo.C if o >= _TURN_CLEAN and fixed < _TURN_FIXED else None
+
+
+def _half_turn_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                        at_samples: torch.Tensor, cands: list[Hypothesis],
+                        score: Callable[[Hypothesis], float], rotation: torch.Tensor,
+                        k_sel: int, targets: torch.Tensor,
+                        orient: Callable[[torch.Tensor], float], memo: dict | None = None
+                        ) -> list[Hypothesis]:
+    """The half-turn partner ``R o T`` of each of the ``_TURN_TOP`` best-scored candidates
+    ``T`` reading an orientation of at least ``_TURN_PARENT`` (``R``: the target's half-turn
+    self-map, functional map ``rotation`` from :func:`_rotation_map`), refined by ZoomOut from
+    16 modes.
+
+    The mirror partners (:func:`_mirror_partners`) turn a mirror map into the direct one; a
+    half-turn ``T`` (left/right and front/back swapped together) reads a direct orientation
+    and has none. Where the full search's candidates held a half-turn but no map near the
+    right one, the half-turn's partner is the right map (SCAPE mesh007 -> mesh009: 21 ->
+    100 %, RESULTS.md, thirtieth session); a right map's partner is a half-turn, and the
+    score decides between them as between any candidates. Partners whose images agree with
+    an existing candidate's (as in :func:`_distinct_hypotheses`) are dropped.
+    """
+    phi_s, phi_t = _bases(src, tgt)
+    Vt, _ = tgt.mesh.numpy()
+    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    parents = sorted((r for r in cands if r.zo_orientation >= _TURN_PARENT),
+                     key=score)[:_TURN_TOP]
+    out: list[Hypothesis] = []
+    for r in parents:
+        seed = targets[spectral_map(phi_t, phi_t[targets], rotation, r.zo.images)[1]]
+        zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
+                           k_end=k_sel, targets=targets)
+        if any(_agree(Vt, zo.images, o.zo.images, radius) >= _ZO_SAME for o in cands + out):
+            continue
+        out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
+                              orientation=float("nan"), zo_orientation=orient(zo.images),
+                              half_turn=True))
     return out
 
 
