@@ -335,10 +335,11 @@ def match(
         orientation-preserving ZoomOut candidates their half-turn partners before polishing:
         each composed with the target's half-turn self-map (left/right and front/back
         swapped together, made from its self-symmetry; ``select._rotation_map``), where the
-        target has a clean one. A half-turn chosen because no candidate was near the right
-        map then meets the right map. SCAPE 50: 96.28 -> 97.86 % (mesh007 -> mesh009 21 ->
-        100 %), no other map changed on TOSCA 284, SCAPE 50 or the held-out michael 260 and
-        SCAPE 60 (RESULTS.md, thirtieth session; ``--no-half-turns``).
+        target has a clean one (5 of the 20 SCAPE shapes, none of TOSCA's). A half-turn
+        chosen because no candidate was near the right map then meets the right map. SCAPE
+        50: 96.28 -> 97.86 % (mesh007 -> mesh009 21 -> 100 %, at margin 0: the tie-break
+        keeps it); no other map changed on TOSCA 284 or the held-out michael 260, one on
+        SCAPE 60, finer (RESULTS.md, thirtieth session; ``--no-half-turns``).
     tie_break : bool
         (``zoomout=True``, two shapes) Settle an ambiguous choice (the best different whole map
         scored within 0.15 of it) by the wave kernel signatures: the chosen map or its rival,
