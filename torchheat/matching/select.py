@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TypeVar
 
 import numpy as np
@@ -52,13 +52,20 @@ _ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct map
 _ZO_START_K = 16  # functional map of the 48 refinement samples' images: 3 samples per mode
 
 
+def _copies(Vt: np.ndarray, images: torch.Tensor, others: Iterable[torch.Tensor],
+            radius: float) -> bool:
+    """Whether ``images`` is the same map as one of ``others`` (images of the same rows):
+    they lie within ``radius`` of each other on at least ``_ZO_SAME`` of the rows."""
+    return any(_agree(Vt, images, o, radius) >= _ZO_SAME for o in others)
+
+
 def _distinct_hypotheses(pool: list[Hypothesis], Vt: np.ndarray, radius: float, limit: int
                          ) -> list[Hypothesis]:
     """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
     of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
     out: list[Hypothesis] = []
     for r in sorted(pool, key=lambda r: r.energy):
-        if all(_agree(Vt, r.g, o.g, radius) < _ZO_SAME for o in out):
+        if not _copies(Vt, r.g, (o.g for o in out), radius):
             out.append(r)
         if len(out) >= limit:
             break
@@ -503,7 +510,7 @@ def _half_turn_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         seed = targets[spectral_map(phi_t, phi_t[targets], rotation, r.zo.images)[1]]
         zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                            k_end=k_sel, targets=targets)
-        if any(_agree(Vt, zo.images, o.zo.images, radius) >= _ZO_SAME for o in cands + out):
+        if _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
             continue
         out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
                               orientation=float("nan"), zo_orientation=orient(zo.images),
@@ -537,7 +544,7 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     leaders: list[torch.Tensor] = []  # ZoomOut images of the maps polished so far
     dropped: set[int] = set()
     for r in sorted((r for r in cands if score(r) <= best + _CLEAR_MARGIN), key=score):
-        if any(_agree(Vt, r.zo.images, q, radius) >= _ZO_SAME for q in leaders):
+        if _copies(Vt, r.zo.images, leaders, radius):
             dropped.add(id(r))
             continue
         leaders.append(r.zo.images)
@@ -761,8 +768,7 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
         for seed in seeds:
             zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                                k_end=k_sel, targets=targets)
-            if any(_agree(Vt, zo.images, o.zo.images, radius) >= _ZO_SAME
-                   for o in cands + out):
+            if _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
                 continue
             out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo,
                                   energy=float("nan"), orientation=float("nan"),
