@@ -1023,9 +1023,23 @@ _FIRST_STAGE_CANDIDATES = 6
 SYMMETRY_FIXED_WEIGHT = 10.0
 
 
+def _own_times(shape: PreparedShape) -> torch.Tensor:
+    """The times the shape was prepared with (a target is re-planned at its source's)."""
+    return shape.hk.times if shape.own_times is None else shape.own_times
+
+
+def _at_own_times(shape: PreparedShape) -> PreparedShape:
+    """The shape planned at its own times: itself, or a role copy (own solver, the shape's
+    caches). Self-maps are computed on it, so that what is cached on the shape does not
+    depend on which source it was last a target of."""
+    own = _own_times(shape)
+    if own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times):
+        return shape
+    return _role_copy(shape, own)
+
+
 def _sym_key(shape: PreparedShape, log_floor: float | None) -> tuple:
-    own = shape.hk.times if shape.own_times is None else shape.own_times
-    return (tuple(own.tolist()), log_floor)
+    return (tuple(_own_times(shape).tolist()), log_floor)
 
 
 def _self_symmetry_cached(shape: PreparedShape, log_floor: float | None) -> bool:
@@ -1041,14 +1055,11 @@ def _self_symmetry(shape: PreparedShape, use_hks: bool, engine: str, n_candidate
     ones of the source it is being matched to), so it is computed once per prepared target
     and reused for every source; cached on the PreparedShape.
     """
-    own = shape.hk.times if shape.own_times is None else shape.own_times
     key = _sym_key(shape, log_floor)
     cache = shape.caches.self_symmetry
     if key in cache:
         return cache[key]
-    view = shape
-    if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
-        view = _role_copy(shape, own)  # own solver at its own times, the shape's caches
+    view = _at_own_times(shape)
     corr = match(view, view, use_hks=use_hks, engine=engine, n_candidates=n_candidates,
                  mirror_hypothesis=False, final_map=False, refine_log_floor=log_floor,
                  source_landmarks=_SELF_SEEDS, fixed_weight=SYMMETRY_FIXED_WEIGHT)
@@ -1106,11 +1117,9 @@ def _self_rotation(shape: PreparedShape, opt: _Options) -> torch.Tensor | None:
     key = _sym_key(shape, opt.refine_log_floor)
     cache = shape.caches.self_rotation
     if key not in cache:
-        # at the shape's own times, as its self-symmetry (not at the source's a target is
-        # re-timed to: the cached map would depend on which pair came first)
-        own = shape.hk.times if shape.own_times is None else shape.own_times
-        if not (own.shape == shape.hk.times.shape and torch.equal(own, shape.hk.times)):
-            shape = _role_copy(shape, own)
+        # at the shape's own times, as its self-symmetry (at the source's a target is
+        # re-timed to, the cached map depended on which pair came first)
+        shape = _at_own_times(shape)
         rows = _fps(shape, opt.zoomout_samples)
         mirror = _symmetry_at(shape, rows, opt.use_hks, opt.engine, opt.n_candidates,
                               opt.refine_log_floor)

@@ -625,7 +625,7 @@ def _same_as(tgt: PreparedShape) -> Callable[[Hypothesis, Hypothesis], bool]:
     every comparison."""
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
-    return lambda a, b: _agree(Vt, a.zo.images, b.zo.images, radius) >= _ZO_SAME
+    return lambda a, b: _copies(Vt, a.zo.images, (b.zo.images,), radius)
 
 
 def _near_gap(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
