@@ -40,12 +40,9 @@ _T = TypeVar("_T")
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
 _ZO_STEP = 8  # modes added per ZoomOut step
-
-
 _ZO_TARGETS = 2000  # farthest-point target samples the ZoomOut steps map to (the dense map: all)
 _ZO_SAME = 0.9  # hypotheses whose sample images agree (within 5 % of the diameter) this often
-
-
+# are the same map (:func:`_copies`)
 _ZO_ORIENT_CLIP = 0.6  # orientation readings above this count alike (direct maps read
 # +0.6..0.95; above it the residual decides: on 41 development pairs a left/right + front/back
 # swap reading +0.9 beat the right map reading +0.84 at a lower residual)
@@ -168,7 +165,7 @@ SymmetriesAt = Callable[[PreparedShape, torch.Tensor], list[torch.Tensor]]
 
 
 def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tensor,
-                     pool: list[dict], opt: _Options, timings: dict,
+                     pool: list[Hypothesis], opt: _Options, timings: dict,
                      symmetries_at: SymmetriesAt, memo: dict | None = None,
                      polish: Callable[[torch.Tensor], torch.Tensor] | None = None,
                      rotation: Callable[[], torch.Tensor | None] | None = None
@@ -255,7 +252,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             cands += _reoriented_candidates(src, tgt, rows, at, cands, k_sel, targets, orient,
                                             tear, memo)
             timings["zoomout_reorient"] = time.perf_counter() - t_r
-        before: list[dict] = []  # candidates polishing changed or dropped, as they were
+        before: list[Hypothesis] = []  # candidates polishing changed or dropped, as they were
         was: dict[int, Hypothesis] = {}  # a polished candidate's id -> itself as it was
         if rotation is not None and at is not None:
             t_h = time.perf_counter()
@@ -382,7 +379,7 @@ _REORIENT_K = 30  # size of the reoriented functional map (then ZoomOut to the c
 def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                            at_samples: torch.Tensor | None, cands: list[Hypothesis], k_sel: int,
                            targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                           tear: _Tear, memo: dict | None = None) -> list[dict]:
+                           tear: _Tear, memo: dict | None = None) -> list[Hypothesis]:
     """An orientation-preserving twin of each of the ``_REORIENT_TOP`` best-aligned ZoomOut
     candidates (least ``log(residual) + tear``, whatever their orientation).
 
@@ -412,15 +409,20 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
                          lambda: _one_thread(compute))
 
     _prefetch([lambda im=r.zo.images: twin(im) for r in top], phi_s)
-    out: list[Hypothesis] = []
-    for r in top:
-        zo = twin(r.zo.images)
-        new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), reoriented=True)
-        new.zo_tear = None  # the tear is the twin's own
-        if at_samples is not None:
-            new.g = zo.images[at_samples]
-        out.append(new)
-    return out
+    return [_twin(r, twin(r.zo.images), at_samples, orient, reoriented=True) for r in top]
+
+
+def _twin(parent: Hypothesis, zo: ZoomOutResult, at_samples: torch.Tensor | None,
+          orient: Callable[[torch.Tensor], float], **kind: bool) -> Hypothesis:
+    """A candidate made from ``parent`` (its landmarks and round-1 readings) with a ZoomOut
+    of its own: that ZoomOut's orientation, its images of the refinement samples (positions
+    ``at_samples`` among the rows; None keeps the parent's), no tear yet (the twin's own is
+    read when scored); ``kind``: its flag (``reoriented=True``, ``trimmed=True``)."""
+    new = dataclasses.replace(parent, zo=zo, zo_orientation=orient(zo.images), **kind)
+    new.zo_tear = None
+    if at_samples is not None:
+        new.g = zo.images[at_samples]
+    return new
 
 
 _TURN_TOP = 3  # best-scored orientation-preserving candidates that get a half-turn partner
@@ -500,22 +502,13 @@ def _half_turn_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     them as between any candidates. Partners whose images agree with
     an existing candidate's (as in :func:`_distinct_hypotheses`) are dropped.
     """
-    phi_s, phi_t = _bases(src, tgt)
-    Vt, _ = tgt.mesh.numpy()
-    radius = 0.05 * tgt.mesh.bbox_diagonal()
+    _, phi_t = _bases(src, tgt)
     parents = sorted((r for r in cands if r.zo_orientation >= _TURN_PARENT),
                      key=score)[:_TURN_TOP]
-    out: list[Hypothesis] = []
-    for r in parents:
-        seed = targets[spectral_map(phi_t, phi_t[targets], rotation, r.zo.images)[1]]
-        zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
-                           k_end=k_sel, targets=targets)
-        if _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
-            continue
-        out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
-                              orientation=float("nan"), zo_orientation=orient(zo.images),
-                              half_turn=True))
-    return out
+    seeds = (targets[spectral_map(phi_t, phi_t[targets], rotation, r.zo.images)[1]]
+             for r in parents)
+    return _seeded_candidates(src, tgt, rows, at_samples, cands, seeds, k_sel, targets, orient,
+                              memo, half_turn=True)
 
 
 def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
@@ -523,7 +516,7 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
                        score: Callable[[Hypothesis], float],
                        polish: Callable[[torch.Tensor], torch.Tensor], k_sel: int,
                        targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                       memo: dict | None = None) -> list[dict]:
+                       memo: dict | None = None) -> list[Hypothesis]:
     """The candidates again, those whose direct score is within ``_CLEAR_MARGIN`` of the best
     polished: each distinct map among them (the best-scored of those whose ZoomOut images
     agree within 5 % of the diameter on ``_ZO_SAME`` of the rows; the others are dropped) has
@@ -671,7 +664,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
                         pos: torch.Tensor, at_samples: torch.Tensor | None, tri: tuple,
                         parents: list[Hypothesis], k_sel: int,
                         targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                        memo: dict | None = None) -> list[dict]:
+                        memo: dict | None = None) -> list[Hypothesis]:
     """Each of the ZoomOut candidates ``parents`` again, seeded only from its rows whose
     neighbourhood keeps the orientation.
 
@@ -707,21 +700,11 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
 
     _prefetch([lambda r=r, keep=keep: trimmed(r, keep) for r, keep in kept], phi_s)
-    out: list[Hypothesis] = []
-    for r, keep in kept:
-        zo = trimmed(r, keep)
-        new = dataclasses.replace(r, zo=zo, zo_orientation=orient(zo.images), trimmed=True)
-        new.zo_tear = None  # the tear is the twin's own (parents are not scored yet here)
-        if at_samples is not None:  # its own images of the refinement samples
-            new.g = zo.images[at_samples]
-        out.append(new)
-    return out
+    return [_twin(r, trimmed(r, keep), at_samples, orient, trimmed=True) for r, keep in kept]
 
 
 _MIRROR_BELOW = -0.5  # ZoomOut candidates reading below this are clean reflections
 _MIRROR_SOURCE = False  # also compose with the source's self-symmetries (measured: no gain
-
-
 # on 13 weak SCAPE pairs, and a self-match more per source shape)
 
 
@@ -748,7 +731,7 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                      at_samples: torch.Tensor, cands: list[Hypothesis],
                      mirror_seeds: list[tuple[Hypothesis, list[torch.Tensor]]], k_sel: int,
                      targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                     memo: dict | None = None) -> list[dict]:
+                     memo: dict | None = None) -> list[Hypothesis]:
     """The mirror partner ``sigma_N o T`` of every orientation-reversing ZoomOut candidate
     ``T`` (``sigma_N``: the target's intrinsic symmetry; the seeds of :func:`_mirror_seeds`),
     refined by ZoomOut from 16 modes.
@@ -760,26 +743,43 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
     existing candidate's (as in :func:`_distinct_hypotheses`) are dropped. ``at_samples``:
     positions of the refinement samples in ``rows`` (the partners' ``g``).
     """
+    seeds = (seed for _, seeds in mirror_seeds for seed in seeds)
+    return _seeded_candidates(src, tgt, rows, at_samples, cands, seeds, k_sel, targets, orient,
+                              memo)
+
+
+def _landmark_free(zo: ZoomOutResult, at_samples: torch.Tensor,
+                   orient: Callable[[torch.Tensor], float], **kind: bool) -> Hypothesis:
+    """A ZoomOut candidate that no landmark started (no round-1 energy or orientation): its
+    images of the refinement samples (positions ``at_samples`` among the ZoomOut rows) and
+    its orientation; ``kind``: its flag (``half_turn=True``, ``descriptor_seed=True``)."""
+    return Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
+                      orientation=float("nan"), zo_orientation=orient(zo.images), **kind)
+
+
+def _seeded_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                       at_samples: torch.Tensor, cands: list[Hypothesis],
+                       seeds: Iterable[torch.Tensor], k_sel: int, targets: torch.Tensor,
+                       orient: Callable[[torch.Tensor], float], memo: dict | None = None,
+                       **kind: bool) -> list[Hypothesis]:
+    """Landmark-free candidates (:func:`_landmark_free`) from seed maps of the ZoomOut
+    ``rows`` (target vertex of each row; taken one at a time), each refined by ZoomOut from
+    ``_ZO_START_K`` to ``k_sel`` modes; one that is a copy (:func:`_copies`) of a candidate
+    of ``cands`` or of an earlier seed's is dropped."""
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
     phi_s, phi_t = _bases(src, tgt)
     out: list[Hypothesis] = []
-    for _, seeds in mirror_seeds:
-        for seed in seeds:
-            zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
-                               k_end=k_sel, targets=targets)
-            if _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
-                continue
-            out.append(Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo,
-                                  energy=float("nan"), orientation=float("nan"),
-                                  zo_orientation=orient(zo.images)))
+    for seed in seeds:
+        zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
+                           k_end=k_sel, targets=targets)
+        if not _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
+            out.append(_landmark_free(zo, at_samples, orient, **kind))
     return out
 
 
 _DESCR_K = 30  # size of the descriptor functional map (pyFM's README: 30)
 _DESCR_VARIANT = 0.65  # agreement (samples within 5 % of the diameter) that makes the
-
-
 _DESCR_DIRECT = 0.3  # descriptor candidate a variant of a candidate reading this orientation
 
 
@@ -820,7 +820,7 @@ def _descriptor_zoomout(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
 def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
                           at_samples: torch.Tensor, cands: list[Hypothesis], k_sel: int,
                           targets: torch.Tensor, orient: Callable[[torch.Tensor], float],
-                          memo: dict | None = None) -> list[dict]:
+                          memo: dict | None = None) -> list[Hypothesis]:
     """One more ZoomOut candidate that no landmark started: the functional map of the
     shapes' wave kernel signatures with the orientation-preserving term
     (:func:`~torchheat.matching.fmap.descriptor_functional_map`), its point map on ``rows``,
@@ -839,9 +839,7 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     if any(o.zo_orientation >= _DESCR_DIRECT and a >= _DESCR_VARIANT
            for o, a in zip(cands, agree, strict=True)):
         return []
-    return [Hypothesis(lms0=[], g=zo.images[at_samples], zo=zo, energy=float("nan"),
-                       orientation=float("nan"), zo_orientation=orient(zo.images),
-                       descriptor_seed=True)]
+    return [_landmark_free(zo, at_samples, orient, descriptor_seed=True)]
 
 
 def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: Hypothesis, refiner: _Refiner,
