@@ -10,7 +10,7 @@ import functools
 import inspect
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -715,6 +715,11 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     chooses neither that map nor its own choice. Returns ``_refine``'s answer and which
     search gave it."""
     memo: dict = {"trees": trees}
+
+    def full_search() -> dict:
+        return _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg, timings,
+                       memo)
+
     if staged and opts.source_landmarks > _FIRST_STAGE_SEEDS:
         # the first seeding features' hypotheses; kept when their choice is clear
         t_q = time.perf_counter()
@@ -729,40 +734,49 @@ def _search(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
         if _clear(out["direct"]):
             if not verify or _defect(src, tgt, out["direct"]) <= _VERIFY_DEFECT:
                 return out, "first stage"
-            # the stages' timers tell of the search whose map is kept; the other one's total
-            # is "verify_search"
-            kept_timings = dict(timings)
-            t_v = time.perf_counter()
-            full = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg, timings,
-                           memo)
-            keep_first = _defect(src, tgt, out["direct"]) <= _defect(src, tgt, full["direct"])
-            t_v = time.perf_counter() - t_v
-            if keep_first:
-                timings.clear()
-                timings.update(kept_timings, verify_search=t_v)
+            second = _SecondSearch(timings, full_search)
+            if _defect(src, tgt, out["direct"]) <= _defect(src, tgt, second.answer["direct"]):
+                second.keep_first("verify_search")
                 return out, "first stage"
-            timings["verify_search"] = t_v
-            return full, "full (lower isometry defect than the first stage's)"
+            timings["verify_search"] = second.elapsed()
+            return second.answer, "full (lower isometry defect than the first stage's)"
         search = "full (first stage not clear)"
         first_direct = out["direct"]
         if _clear_choice(first_direct.zo_margin, first_direct.zo_orientation):
             # clear but for a partly different map close behind (select._NEAR_MARGIN): the
             # full search is asked which of the two it is; a third map is not an answer
-            kept_timings = dict(timings)
-            t_f = time.perf_counter()
-            full = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg,
-                           timings, memo)
-            d, same = full["direct"], _same_as(tgt)
+            second = _SecondSearch(timings, full_search)
+            d, same = second.answer["direct"], _same_as(tgt)
             if (d.zo is not None and not same(d, first_direct)
                     and not same(d, first_direct.zo_near_rival)):
-                timings.clear()
-                timings.update(kept_timings, near_search=time.perf_counter() - t_f)
+                second.keep_first("near_search")
                 return out, "first stage (the full search chose neither of its near-tied maps)"
-            return full, search
+            return second.answer, search
     else:
         search = "full"
-    out = _refine(src, tgt, p, cands, p2, auto_landmark, score_rows, opts, bg, timings, memo)
-    return out, search
+    return full_search(), search
+
+
+class _SecondSearch:
+    """The full search run after a first stage that was clear or nearly so, to be compared
+    with it (:func:`_search`). The stage timers then tell of the search whose map is kept:
+    :meth:`keep_first` puts the first stage's back, with the full search's total under a
+    key of its own."""
+
+    def __init__(self, timings: dict, run: Callable[[], dict]) -> None:
+        self.timings, self.kept = timings, dict(timings)
+        self.t0 = time.perf_counter()
+        self.answer = run()
+
+    def elapsed(self) -> float:
+        """Seconds since the full search began (its comparison included)."""
+        return time.perf_counter() - self.t0
+
+    def keep_first(self, key: str) -> None:
+        """The first stage's map is kept: its timers back, the full search's total as ``key``."""
+        t = self.elapsed()
+        self.timings.clear()
+        self.timings.update(self.kept, **{key: t})
 
 
 #: ``match(verify_stage=True)``: a clear first stage whose map reads an isometry defect at
