@@ -46,7 +46,9 @@ def main(argv: list[str] | None = None) -> int:
         description="Batch evaluation of torchheat matching over a dataset (resumable).",
     )
     ap.add_argument("config", help="YAML run configuration (see configs/)")
-    ap.add_argument("--workers", type=int, default=None, help="local worker processes")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="local worker processes, one torch thread each (1: in this process, "
+                         "with torch's own thread count)")
     ap.add_argument("--dask", metavar="ADDRESS", default=None, help=_DASK_HELP)
     ap.add_argument("--limit", type=int, default=None, help="only the first N pairs")
     ap.add_argument("--output", default=None, help="output folder (default out/<name>)")

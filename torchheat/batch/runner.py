@@ -234,8 +234,11 @@ def run(
     workers : int
         ``> 1``: that many local worker processes (one torch thread each; the pairs of one
         target run on the same worker, see :class:`_AffinityPool`; a ``match`` run solves
-        each shape once first, see :func:`_solve_shapes_first`). Ignored when ``executor``
-        is given.
+        each shape once first, see :func:`_solve_shapes_first`). ``1``: the pairs run in
+        this process, with torch's thread count as it is; a run with several threads can
+        give maps that differ from the one-thread workers' in their last bits (TOSCA 284
+        with two threads: one pair of 284 moved, cat2 -> cat5, mean eps 0.0288 -> 0.0287;
+        ``OMP_NUM_THREADS=1`` gives the workers' maps). Ignored when ``executor`` is given.
     executor : object with ``map(fn, iterable)``, optional
         Any executor; a :class:`concurrent.futures.Executor` is driven through ``submit`` so
         records are written as they finish. A :class:`torchheat.executors.DaskExecutor` (or a
