@@ -1157,6 +1157,32 @@ def test_half_turn_partner_undoes_a_half_turn():
                                60, targets, lambda im: 0.5) == []
 
 
+def test_rotation_map_refuses_a_self_map_that_leaves_the_shape_in_place():
+    """``_rotation_map`` keeps a half-turn only when it moves the shape: given the identity
+    as the "self-symmetry", its reoriented twin is the identity (every row in place, read
+    as orientation-preserving), which is no half-turn, so there is none (None). The
+    positive case is checked on SCAPE data below."""
+    from torchheat.matching.fmap import landmark_functional_map
+    from torchheat.matching.prepared import _fps
+    from torchheat.matching.refine import _agree
+    from torchheat.matching.select import _TURN_FIXED, _rotation_map
+    from torchheat.matching.zoomout import spectral_map, zoomout
+
+    m = trimesh.creation.icosphere(3)
+    V = np.array(m.vertices) * np.array([1.0, 0.6, 0.35])
+    V[:, 0] *= 1 + 0.3 * V[:, 0]
+    S = prepare(Mesh(V, np.asarray(m.faces)), k=30)
+    rows, targets = _fps(S, 300), _fps(S, S.n)
+    assert _rotation_map(S, rows, rows.clone(), targets, 10) is None
+    # what was refused: the twin's map, made as _rotation_map makes it, leaves the rows in
+    # place (far above the share a half-turn may fix)
+    phi = S.hk.eigenvectors
+    C = landmark_functional_map(S, S, rows[:20], rows[:20], k=10)
+    j = spectral_map(phi, phi[targets], C, rows)[1]
+    zo = zoomout(phi, phi, rows, targets[j], rows, k_start=10, k_end=10, targets=targets)
+    assert _agree(V, zo.images, rows, 0.05 * S.mesh.bbox_diagonal()) > 3 * _TURN_FIXED
+
+
 @pytest.mark.skipif(not (_SHARED / "scape").is_dir(), reason="no shared/data")
 def test_half_turns_right_a_scape_pair_the_score_had_no_right_candidate_for():
     """SCAPE mesh007 -> mesh009: without half-turn partners the full search chooses a
