@@ -393,23 +393,36 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     first ``_REORIENT_POINTS`` rows and their images, then ZoomOut from ``_REORIENT_K`` to
     ``k_sel`` modes. Twins of candidates that were already right come out right, often finer.
     Added beside the others (the score decides). Cost: ~0.08 s per twin (TOSCA 5k)."""
-    phi_s, phi_t = _bases(src, tgt)
     top = sorted(cands, key=lambda r: _base_score(r, tear))[:_REORIENT_TOP]
-    k0 = min(_REORIENT_K, k_sel)
 
     def twin(im: torch.Tensor) -> ZoomOutResult:
-        def compute() -> ZoomOutResult:
-            C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS],
-                                        im[:_REORIENT_POINTS], k=k0, memo=memo)
-            j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
-            return _memo_zoomout(memo, phi_s, phi_t, rows, targets[j], rows, k_start=k0,
-                                 k_end=k_sel, targets=targets)
+        return _reoriented_zoomout(src, tgt, rows, im, k_sel, targets, memo)
 
-        return _memoised(memo, ("reoriented", im[:_REORIENT_POINTS].numpy().tobytes(), k0),
-                         lambda: _one_thread(compute))
-
-    _prefetch([lambda im=r.zo.images: twin(im) for r in top], phi_s)
+    _prefetch([lambda im=r.zo.images: twin(im) for r in top], src.hk.eigenvectors)
     return [_twin(r, twin(r.zo.images), at_samples, orient, reoriented=True) for r in top]
+
+
+def _reoriented_zoomout(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
+                        images: torch.Tensor, k_sel: int, targets: torch.Tensor,
+                        memo: dict | None = None) -> ZoomOutResult:
+    """The ZoomOut of a map's reoriented twin: the orientation-preserving
+    :func:`~torchheat.matching.fmap.landmark_functional_map` (``_REORIENT_K`` modes) of the
+    first ``_REORIENT_POINTS`` rows and their ``images``, its point map on ``rows``, then
+    ZoomOut to ``k_sel`` modes; memoised in ``memo``, on one torch thread
+    (:func:`_one_thread`). Used for the candidates' twins and for a shape's half-turn
+    self-map (:func:`_rotation_map`, ``src`` and ``tgt`` the same shape)."""
+    phi_s, phi_t = _bases(src, tgt)
+    k0 = min(_REORIENT_K, k_sel)
+
+    def compute() -> ZoomOutResult:
+        C = landmark_functional_map(src, tgt, rows[:_REORIENT_POINTS],
+                                    images[:_REORIENT_POINTS], k=k0, memo=memo)
+        j = spectral_map(phi_s, phi_t[targets], C, rows)[1]
+        return _memo_zoomout(memo, phi_s, phi_t, rows, targets[j], rows, k_start=k0,
+                             k_end=k_sel, targets=targets)
+
+    return _memoised(memo, ("reoriented", images[:_REORIENT_POINTS].numpy().tobytes(), k0),
+                     lambda: _one_thread(compute))
 
 
 def _twin(parent: Hypothesis, zo: ZoomOutResult, at_samples: torch.Tensor | None,
@@ -438,14 +451,14 @@ def _rotation_map(shape: PreparedShape, rows: torch.Tensor, mirror: torch.Tensor
 
     A human body has, beside its left/right reflection ``sigma``, an approximate front/back
     one; composed, they make a half-turn about the body's axis, orientation-preserving. It is
-    made as the reoriented twin of ``sigma`` (as :func:`_reoriented_candidates` makes one):
-    :func:`~torchheat.matching.fmap.landmark_functional_map` of the first
-    ``_REORIENT_POINTS`` rows and their mirror images (parts kept where ``sigma`` sends
-    them, the orientation term turning them to face the other way), then ZoomOut to ``k``
-    modes. Kept only when clean: orientation at least ``_TURN_CLEAN`` and fewer than
-    ``_TURN_FIXED`` of the rows left in place (a near-identity is no half-turn). Cost: one
-    30-mode functional map and one ZoomOut; with the self-symmetry's images of the rows at the
-    shape's own times (``pipeline._self_rotation``), 0.1-1.5 s once per target shape
+    made as the reoriented twin of ``sigma`` (:func:`_reoriented_zoomout`, as
+    :func:`_reoriented_candidates` makes one): parts kept where ``sigma`` sends the first
+    ``_REORIENT_POINTS`` rows, the orientation term turning them to face the other way,
+    then ZoomOut to ``k`` modes. Kept only when clean: orientation at least ``_TURN_CLEAN``
+    and fewer than ``_TURN_FIXED`` of the rows left in place (a near-identity is no
+    half-turn). Cost: one 30-mode functional map and one ZoomOut; with the self-symmetry's
+    images of the rows at the shape's own times (``pipeline._self_rotation``), 0.1-1.5 s
+    once per target shape
     (TOSCA 5k, SCAPE 12.5k). A clean one was found for 5 of the 20 SCAPE shapes and none of
     the 76 TOSCA 5k shapes.
 
@@ -466,13 +479,7 @@ def _rotation_map(shape: PreparedShape, rows: torch.Tensor, mirror: torch.Tensor
     torch.Tensor, float64, shape (k, k), or None
         ``C`` with ``Phi C ~ Phi[R]`` (:mod:`.zoomout`'s convention).
     """
-    phi = shape.hk.eigenvectors
-    k0 = min(_REORIENT_K, k)
-    C = landmark_functional_map(shape, shape, rows[:_REORIENT_POINTS],
-                                mirror[:_REORIENT_POINTS], k=k0)
-    j = spectral_map(phi, phi[targets], C, rows)[1]
-    zo = zoomout(phi, phi, rows, targets[j], rows, k_start=k0, k_end=k, step=_ZO_STEP,
-                 targets=targets)
+    zo = _reoriented_zoomout(shape, shape, rows, mirror, k, targets)
     V, _ = shape.mesh.numpy()
     pos = torch.full((shape.n,), -1, dtype=torch.int64)
     pos[rows] = torch.arange(rows.numel())
@@ -499,8 +506,8 @@ def _half_turn_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     right one, the half-turn's partner is the right map (SCAPE mesh007 -> mesh009: 21 ->
     100 %, though chosen at margin 0 and kept by the wave-kernel tie-break; RESULTS.md,
     thirtieth session); a right map's partner is a half-turn, and the score decides between
-    them as between any candidates. Partners whose images agree with
-    an existing candidate's (as in :func:`_distinct_hypotheses`) are dropped.
+    them as between any candidates. Partners that copy an existing candidate are dropped
+    (:func:`_seeded_candidates`).
     """
     _, phi_t = _bases(src, tgt)
     parents = sorted((r for r in cands if r.zo_orientation >= _TURN_PARENT),
