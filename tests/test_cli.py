@@ -147,6 +147,17 @@ def test_console_script_subprocess(tmp_path):
     assert res.stderr.strip().count("\n") == 0 and "missing.off: no such file" in res.stderr
 
 
+def test_python_dash_m_torchheat_is_the_command(tmp_path):
+    """``python -m torchheat`` (no scripts folder on PATH) runs the same command."""
+    res = subprocess.run([sys.executable, "-m", "torchheat", "--version"], capture_output=True,
+                         text=True, timeout=60, cwd=tmp_path)
+    assert res.returncode == 0 and res.stdout.startswith("torchheat "), res.stderr
+    res = subprocess.run([sys.executable, "-m", "torchheat", "check",
+                          str(tmp_path / "missing.off")], capture_output=True, text=True,
+                         timeout=60, cwd=tmp_path)
+    assert res.returncode == 1 and "missing.off: no such file" in res.stdout + res.stderr
+
+
 def test_background_eigensolves_give_the_same_map(pair, matched):
     # --workers 0 solves in-process; the default (workers, when 2+ CPUs) must not change maps
     src, tgt, inv, d = pair
