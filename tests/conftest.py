@@ -13,6 +13,16 @@ SHARED = ROOT.parent / "shared" / "data"
 DATA = ROOT / "torchheat" / "data"
 
 
+def load_script(name: str):
+    """``scripts/<name>.py`` as a module (the scripts are not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def generic_sphere(subdivisions: int = 3, seed: int = 0, noise: float = 0.05):
     """An ellipsoid with random radial bumps: no symmetry, irregular triangles."""
     m = trimesh.creation.icosphere(subdivisions)

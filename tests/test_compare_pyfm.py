@@ -3,13 +3,12 @@ distances on a sphere) and its flip-aware choice (pyFM itself is not needed)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import numpy as np
 import pytest
 import trimesh
-from conftest import ROOT
+from conftest import load_script
 
 from torchheat import Mesh
 
@@ -17,11 +16,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:Sparse")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("compare_pyfm",
-                                                  ROOT / "scripts" / "compare_pyfm.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("compare_pyfm")
 
 
 def test_princeton_errors_match_great_circle_distances():

@@ -3,19 +3,13 @@ meshes the matcher takes (the held-out partial check must not test broken pieces
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import trimesh
-from conftest import ROOT
+from conftest import load_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("partial_unseen",
-                                                  ROOT / "scripts" / "partial_unseen.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("partial_unseen")
 
 
 def _capsule():
