@@ -95,6 +95,9 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
     """``(piece name, pair, kind, faces kept)`` of every piece to run."""
     if not n_random:
         for name in spec:
+            if name not in pc.names:
+                raise SystemExit(f"{name!r} is no TOSCA 5k test pair (e.g. victoria0-victoria1); "
+                                 "a class name needs --random N")
             pr = pc[pc.names.index(name)]
             V, F = pr.source.mesh.numpy()
             for kind, keep in fixed_pieces(V, F).items():
