@@ -14,12 +14,20 @@ DATA = ROOT / "torchheat" / "data"
 
 
 def load_script(name: str):
-    """``scripts/<name>.py`` as a module (the scripts are not a package)."""
+    """``scripts/<name>.py`` as a module (the scripts are not a package), registered in
+    ``sys.modules`` as ``scripts.<name>`` while it runs (dataclasses look their module up)."""
     import importlib.util
+    import sys
 
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    key = f"scripts.{name}"
+    spec = importlib.util.spec_from_file_location(key, ROOT / "scripts" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    sys.modules[key] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        del sys.modules[key]
+        raise
     return mod
 
 
