@@ -10,7 +10,7 @@ Pieces (the largest connected piece of what is kept):
 * ``--random N``: N cut and N holed pieces per class, drawn from its test pairs in turn, as
   SHREC'16 makes them: cuts by one or two random planes (14-88 % of the area kept), holes by
   4-9 Euclidean balls of radius 3-9 % of the diagonal around random vertices (at least 14 % of
-  the area kept). Seeded by ``--seed`` and the class, so a run is repeatable.
+  the area kept). Seeded by ``--seed`` and the class: a run with the same N is repeatable.
 
 Errors: geodesic on B / sqrt(area of B) (the Princeton protocol SHREC'16 uses), direct and
 against TOSCA's symmetric ground truth (flip-aware: the better of the two for the whole map), on
@@ -59,11 +59,6 @@ def fixed_pieces(V: np.ndarray, F: np.ndarray) -> dict[str, np.ndarray]:
     ring = kring(F, farthest_point_sampling(V, 12).numpy().tolist(), 2)
     c = np.quantile(V[:, 1], 0.6)
     return {"holes": ~np.isin(F, ring).any(axis=1), "cut": (V[F, 1] <= c).all(axis=1)}
-
-
-def _area(V: np.ndarray, F: np.ndarray) -> float:
-    return float(0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]],
-                                               V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())
 
 
 def random_cut(V: np.ndarray, F: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -115,7 +110,7 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
                 for _ in range(50):  # a draw keeping too little (or too much) is drawn again
                     keep = make(V, F, rng)
                     piece = _piece(V, F, keep, "piece")
-                    r = piece.area() / _area(V, F)
+                    r = piece.area() / pr.source.mesh.area()
                     if 0.14 <= r <= (0.88 if kind == "cut" else 0.94) and piece.n_vertices >= 300:
                         break
                 yield f"{pr.name}:{kind}{i}", pr, kind, keep
@@ -167,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
             es = geodesic_errors((W, G), m, gsym[rows][ok], solver=solver)
             flip = es if es.mean() < e.mean() else e
             rec = {"piece": piece_name, "pair": pr.name, "cls": pr.cls, "kind": kind,
-                   "r": P.area() / _area(V, F), "n": P.n_vertices,
+                   "r": P.area() / pr.source.mesh.area(), "n": P.n_vertices,
                    "acc": float((e < 0.25).mean()), "acc05": float((e < 0.05).mean()),
                    "mean": float(e.mean()), "flip_acc": float((flip < 0.25).mean()),
                    "quality": float(corr.quality.quality), "suspect": bool(corr.suspect),

@@ -32,7 +32,8 @@ def test_random_cut_keeps_one_side_of_its_planes_and_repeats_with_its_seed():
     for s in one[:5]:
         keep = pu.random_cut(V, F, np.random.default_rng(s))
         rng = np.random.default_rng(s)
-        rng.integers(1, 3), rng.uniform(0.14, 0.88)
+        rng.integers(1, 3)  # the plane count and the kept share, drawn first
+        rng.uniform(0.14, 0.88)
         d = rng.normal(size=3)
         h = V @ (d / np.linalg.norm(d))
         assert keep.any() and (h[F[~keep]].min(axis=1) < h[F[keep]].min()).all()

@@ -3,4 +3,5 @@ environment whose scripts folder is not on ``PATH``."""
 
 from .cli import run
 
-run()
+if __name__ == "__main__":
+    run()
