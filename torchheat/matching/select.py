@@ -557,6 +557,13 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
 
 
 _TIE_ENERGIES = 16  # log-spaced WKS energies of the tie-break
+#: The tie-break's errors must differ by more than this times the mean ``|log WKS|`` of the
+#: rows for the rival to win: less is rounding, not evidence. An exactly symmetric mesh
+#: matched to a moved copy has two exact isometries (direct and mirror) whose errors differ
+#: in the 13th digit (1.64e-13 against 1.69e-13), and which of them was lower depended on
+#: the host's floating-point kernels (the mirror won on an AMD EPYC, the direct map on an
+#: Intel Xeon). Right and wrong maps of real shapes differ by 1e-3 or more.
+_TIE_ROUNDING = 1e-9
 
 
 def _log_wks(shape: PreparedShape, energies: np.ndarray, sigma: float) -> np.ndarray:
@@ -580,7 +587,8 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     Measured on the 31 ambiguous choices of TOSCA 284, SCAPE 50 and 320 held-out pairs
     (dense maps, RESULTS.md, twentieth session): the lower error picks the right map of the
     two in 7 of the 9 pairs where it differs from the score's choice by 20 points or more.
-    The loser becomes the rival; the margin stays (the choice stays ambiguous).
+    The loser becomes the rival; the margin stays (the choice stays ambiguous). Errors equal
+    to rounding (:data:`_TIE_ROUNDING`) are a tie, and a tie keeps the chosen map.
     """
     rival = direct.zo_rival
     lam = np.concatenate([src.hk.eigenvalues.double().numpy(),
@@ -595,7 +603,7 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
         return float(np.abs(Ds - Dt[r.zo.images.numpy()]).mean())
 
     e_direct, e_rival = error(direct), error(rival)
-    if e_rival >= e_direct:
+    if e_rival >= e_direct - _TIE_ROUNDING * float(np.abs(Ds).mean()):  # a tie keeps the choice
         direct.zo_tie_break = (e_direct, e_rival)
         return direct
     rival.zo_margin, rival.zo_rival = direct.zo_margin, direct
