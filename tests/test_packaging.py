@@ -1,6 +1,7 @@
 """What an install that is not editable holds: a wheel built from the source tree must carry
-every subpackage and the bundled meshes, and import without the source tree beside it (the
-development install is editable, so the rest of the suite would not notice a missing one)."""
+every subpackage, the bundled meshes and the ``py.typed`` marker, and import without the source
+tree beside it (the development install is editable, so the rest of the suite would not notice a
+missing one)."""
 
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ def test_wheel_holds_every_subpackage_and_the_bundled_meshes(wheel: Path) -> Non
     assert not [m for m in modules if m not in names]
     meshes = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "torchheat/data").glob("*"))
     assert meshes and not [m for m in meshes if m not in names]
+    assert "torchheat/py.typed" in names  # the marker that the package ships its annotations
 
 
 def test_wheel_imports_and_matches_without_the_source_tree(wheel: Path, tmp_path: Path) -> None:

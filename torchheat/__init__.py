@@ -42,7 +42,8 @@ __all__ = list(_EXPORTS)
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs (names listed in _EXPORTS)
     from .heat import HeatKernel, default_times  # noqa: F401
-    from .matching import Correspondence, PreparedShape, match, prepare, symmetry  # noqa: F401
+    from .matching import Correspondence, PreparedShape, match, prepare  # noqa: F401
+    from .matching.symmetry import symmetry  # noqa: F401
     from .mesh import Mesh, as_mesh, load_mesh  # noqa: F401
     from .meshio import MeshError, MeshWarning  # noqa: F401
     from .operators import Laplacian, cotmatrix, laplacian, massmatrix  # noqa: F401

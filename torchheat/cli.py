@@ -283,6 +283,7 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
     n_fine = len(solved) if fine is not None and fine > DEFAULT_EIGENPAIRS and workers != 0 \
         else 0
     if n_fine:  # --fine: each mesh's larger basis too, solved after the default one
+        assert fine is not None  # (n_fine)
         jobs, ks = [*jobs, *solved], [*ks, *[int(fine)] * n_fine]
     with EigenWorkers(jobs, k=ks, processes=workers, nice=_WORKER_NICE) as bg:
         from .mesh import Mesh  # imports torch, while the workers solve
@@ -298,9 +299,9 @@ def _load_and_prepare(paths: Sequence[str], args: argparse.Namespace,
 
         def eigenpairs(i: int) -> Any:
             # the workers' vertices must be the mesh's (they are: same rule, same arrays)
-            n = len(solved[i][0])
-            if n != meshes[i].n_vertices or (pieces[i] is not None and not np.array_equal(
-                    pieces[i], meshes[i].vertex_map.numpy())):
+            n, piece = len(solved[i][0]), pieces[i]
+            if n != meshes[i].n_vertices or (piece is not None and not np.array_equal(
+                    piece, meshes[i].vertex_map.numpy())):
                 return None
             return bg.get(i)
 

@@ -364,6 +364,7 @@ def _complete(op: sla.LinearOperator, mu: np.ndarray, psi: np.ndarray,
     largest eigenvalues of ``P op P`` (``P`` projects out ``psi``) above ``min(mu)`` are modes
     below ``lambda_k`` that were missed; they replace the smallest ``mu``.
     """
+    m: int  # (numpy's stubs type shape entries as Any, and standard_normal(Any) as a float)
     m, k = psi.shape
     rng = np.random.default_rng(2)
     for _ in range(rounds):

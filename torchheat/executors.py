@@ -441,7 +441,7 @@ class DaskExecutor:
 
     def __repr__(self) -> str:
         try:
-            workers = len(self.workers)
+            workers: int | str = len(self.workers)
         except Exception:  # noqa: BLE001 - a closed client
             workers = "?"
         return f"DaskExecutor({self.address!r}, workers={workers})"

@@ -142,7 +142,7 @@ def _parse_numbers(text: str, dtype: type, count: int) -> np.ndarray | None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # numpy warns (and stops) on unparsable text
         try:
-            out = np.fromstring(text, dtype=dtype, sep=" ")
+            out: np.ndarray = np.fromstring(text, dtype=dtype, sep=" ")
         except (ValueError, OverflowError, DeprecationWarning):
             return None
     return out if out.size == count else None
@@ -996,7 +996,7 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if face is None or face.count == 0:
         raise _no_faces(path)
     lists = [p[0] for p in face.props if p[2] is not None]
-    key = next((n for n in ("vertex_indices", "vertex_index") if n in lists), None)
+    key: str | None = next((n for n in ("vertex_indices", "vertex_index") if n in lists), None)
     if key is None and len(lists) == 1:
         key = lists[0]
     if key is None:

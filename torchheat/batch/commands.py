@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, _check_executor, load_config
+from .config import ConfigError, Executor, _check_executor, load_config
 from .report import _table_rows
 from .runner import _tasks, preprocess, run
 from .task import _worker_init
@@ -131,7 +131,7 @@ def preprocess_main(argv: list[str] | None = None) -> int:
     try:
         spec = _executor_args({}, args.workers, args.dask)
         with contextlib.ExitStack() as owned:
-            executor = None
+            executor: Executor | None = None
             if "dask" in spec:
                 from ..executors import DaskExecutor
 

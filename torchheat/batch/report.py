@@ -5,6 +5,7 @@ pair), the mean cumulative curves PNG and colour-transfer pictures.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import math
 import os
@@ -244,7 +245,7 @@ def _pictures(results: Sequence[Mapping[str, Any]], out: Path, cfg: Mapping[str,
             pair = pc[index[rec["name"]]]
             d = rec["direct"] if rec.get("flip") is None else rec["flip"]
             title = f"{rec['name']}: {100 * d['under_0.25']:.0f}% < 0.25"
-            atomic_write(png, lambda t, p=pair, f=fmap, ti=title: color_transfer(
-                p.source.mesh, p.target.mesh, f, t, title=ti))
+            atomic_write(png, functools.partial(color_transfer, pair.source.mesh,
+                                                pair.target.mesh, fmap, title=title))
         except Exception as exc:  # noqa: BLE001 - pictures are optional
             warnings.warn(f"picture for {rec['name']} failed: {exc}", stacklevel=2)

@@ -9,6 +9,7 @@ import builtins
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import functools
 import os
 import shutil
 import sys
@@ -331,7 +332,7 @@ def run(
                 arrays = rec.pop("_arrays", None)
                 if arrays is not None:
                     atomic_write(out / "maps" / f"{rec['name']}.npz",
-                                 lambda t, a=arrays: np.savez(t, **a))
+                                 functools.partial(np.savez, **arrays))
                 if rec["key"] in by_key:  # an executor delivered a pair twice
                     continue
                 by_key[rec["key"]] = rec

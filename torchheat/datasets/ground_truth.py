@@ -48,7 +48,11 @@ class Barycentric:
         return int(self.corners.shape[0])
 
 
-GTResult = tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]
+#: What a ground truth returns: ``(gt_src, gt_tgt, gt_sym_tgt)``, optionally followed by the
+#: barycentric points ``(gt_bary, gt_sym_bary)`` (:class:`BarycentricGT`)
+GTResult = (tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]
+            | tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None,
+                    Barycentric, Barycentric | None])
 
 
 def _check_range(idx: np.ndarray, n: int, what: str) -> torch.Tensor:
@@ -194,7 +198,7 @@ class BarycentricGT:
 
     folder: Path
 
-    def __call__(self, source: Shape, target: Shape) -> tuple:
+    def __call__(self, source: Shape, target: Shape) -> GTResult:
         _, F = target.mesh.numpy()
         d = Path(self.folder)
         b = read_barycentric(d / f"{source.name}.baryc_gt", len(F), F)

@@ -105,7 +105,7 @@ class PairCollection(Dataset):
         a, b = self.pairs[i]
         src = self.shapes[a]
         tgt = src if b == a else self.shapes[b]
-        bary = (None, None)
+        bary: tuple[Barycentric | None, Barycentric | None] = (None, None)
         if self.gt is None:
             gs, gtg, gsym = None, None, None
         else:

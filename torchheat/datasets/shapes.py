@@ -389,7 +389,9 @@ class ShapeCollection(Dataset):
             return None
 
     def _save_cache(self, cpath: Path, sha: str, data: dict[str, Any]) -> None:
-        arrays = {k: to_numpy(data[k]).astype(np.float64, copy=False) for k in _ARRAY_KEYS}
+        # (arrays and numpy scalars; Any, as np.savez's stubs read ** as its allow_pickle too)
+        arrays: dict[str, Any] = {k: to_numpy(data[k]).astype(np.float64, copy=False)
+                                  for k in _ARRAY_KEYS}
         arrays.update({k: np.float64(data[k]) for k in _SCALAR_KEYS})
         arrays["meta"] = np.array(self._meta(sha))
         atomic_write(cpath, lambda tmp: np.savez(tmp, **arrays))  # tmp ends in .npz as cpath

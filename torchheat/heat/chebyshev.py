@@ -236,7 +236,8 @@ def chebyshev_columns(X2: torch.Tensor, a: np.ndarray, red: np.ndarray, tj: np.n
     chunk = _staged_steps(K)
     buf = torch.empty((chunk, m * B), dtype=dt, device=dev)
     acc = torch.zeros((len(tj), m * B), dtype=dt, device=dev)
-    t_prev = t_cur = None
+    t_prev: torch.Tensor | None = None
+    t_cur: torch.Tensor | None = None
     for kk in range(K + 1):
         slot = kk % chunk
         t_new = buf[slot].view(m, B)  # the recurrence writes straight into the buffer
@@ -245,6 +246,7 @@ def chebyshev_columns(X2: torch.Tensor, a: np.ndarray, red: np.ndarray, tj: np.n
         elif kk == 1:
             torch.addmm(v0, X2, v0, beta=0.0, alpha=0.5, out=t_new)  # X v0
         else:
+            assert t_prev is not None and t_cur is not None  # T_{k-2}, T_{k-1}: set at k >= 2
             torch.addmm(t_prev, X2, t_cur, beta=-1.0, out=t_new)
         t_prev, t_cur = t_cur, t_new
         if slot == chunk - 1 or kk == K:

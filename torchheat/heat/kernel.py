@@ -22,7 +22,7 @@ import torch
 from .._arrays import integral, to_numpy
 from ..eigen import EigensolverError, eigenpairs
 from ..mesh import Mesh
-from ..operators import Laplacian, laplacian, scipy_to_torch
+from ..operators import Boundary, Kind, Laplacian, laplacian, scipy_to_torch
 from . import chebyshev
 from .certify import column_norms, relative_bound
 from .chebyshev import (
@@ -227,8 +227,8 @@ class HeatKernel:
         *,
         method: str = "auto",
         k: int | None = None,
-        kind: str = "cotan",
-        boundary: str = "neumann",
+        kind: Kind = "cotan",
+        boundary: Boundary = "neumann",
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
         block: int = 64,
@@ -646,6 +646,7 @@ class HeatKernel:
         # certify, and refine what fails (rarely needed: the plan is conservative)
         bound = self._certify(colr, red_live, eta) if certify else None
         if certify and self.method != "spectral":
+            assert bound is not None  # (certify)
             norms = self._norms(colr, red_live)
             for attempt in range(4):
                 bad = bound > self.rtol

@@ -435,7 +435,9 @@ def descriptor_operators(V: np.ndarray, F: np.ndarray, mass: np.ndarray, phi: np
 
 
 def _terms(src: PreparedShape, tgt: PreparedShape, k: int, n_descr: int,
-           weights: tuple[float, float, float, float]) -> tuple:
+           weights: tuple[float, float, float, float]
+           ) -> tuple[list[float], np.ndarray, np.ndarray, np.ndarray,
+                      tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """Weights and matrices of the energy: ``(coef, A, B, mask, (D_M, D_N), (O_M, O_N))``."""
     lam_s_all = src.hk.eigenvalues.double().numpy()
     lam_t_all = tgt.hk.eigenvalues.double().numpy()

@@ -76,7 +76,7 @@ class _Hypotheses:
     def first_round(self, hyp: list) -> list[tuple[float, int, list, torch.Tensor]]:
         """Round 1 of every landmark hypothesis of ``hyp``: ``(energy, seeding order,
         landmarks, sample images)``, lowest energy first (ties in seeding order)."""
-        stage = []
+        stage: list[tuple[float, int, list, torch.Tensor]] = []
         for lms0 in hyp:
             e1, g0 = self.round1(lms0)
             stage.append((e1, len(stage), lms0, g0))

@@ -5,9 +5,11 @@ landmarks).
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -87,7 +89,8 @@ def landmark_scores(
     >>> landmark_scores(s, s, 0, [0, 1]).shape
     torch.Size([2])
     """
-    ps = [int(p)] if np.isscalar(p) or isinstance(p, int | np.integer) else [int(v) for v in p]
+    # (numpy's stubs: np.isscalar narrows p to any numpy scalar, which int() may refuse)
+    ps = [int(p)] if np.isscalar(p) or isinstance(p, int | np.integer) else [int(v) for v in p]  # type: ignore[arg-type]
     qf = [int(v) for v in q_fixed]
     if len(qf) != len(ps) - 1:
         raise ValueError("q_fixed must give the images of all but the last source landmark")
@@ -121,7 +124,11 @@ def landmark_scores(
             Cq = target.hk.columns(torch.tensor(todo[c0 : c0 + step]), certify=False)
             for i, q in enumerate(todo[c0 : c0 + step]):
                 Dq = _candidate_descriptor(target, Cq[i], None, use_hks)
-                score(q, trees.get((q, use_hks), lambda Dq=Dq: Dq.double().numpy()))
+
+                def rows(Dq: torch.Tensor = Dq) -> np.ndarray:
+                    return Dq.double().numpy()
+
+                score(q, trees.get((q, use_hks), rows))
             del Cq
         return scores
     for c0 in range(0, cand.numel(), step):
@@ -288,7 +295,7 @@ def _vertex_index(value: object, n: int, what: str) -> int:
     """``value`` as a vertex index in ``[0, n)``: an integer (Python, numpy or a one-element
     tensor; a float only when integral), else a ``TypeError``; out of range an ``IndexError``
     (a float 3.7 was truncated to vertex 3 without a word)."""
-    v = value.item() if isinstance(value, torch.Tensor) and value.numel() == 1 else value
+    v: Any = value.item() if isinstance(value, torch.Tensor) and value.numel() == 1 else value
     if isinstance(v, float | np.floating) and float(v).is_integer():
         v = int(v)
     try:
@@ -423,6 +430,6 @@ def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: tor
         for _ in range(min(opt.source_landmarks, feats.size) - 1):
             pe = _farthest_feature(Vs, feats, used)
             used.append(pe)
-            hyp += _memoised(memo, ("seeds", pe), lambda pe=pe: _feature_seeds(
-                src, tgt, pe, opt, score_rows, extra_rows, trees))
+            hyp += _memoised(memo, ("seeds", pe), functools.partial(
+                _feature_seeds, src, tgt, pe, opt, score_rows, extra_rows, trees))
     return hyp

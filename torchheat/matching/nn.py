@@ -342,6 +342,7 @@ def _nn_factors(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     elif X.C is not None:
         Q = Ps @ X.C
     else:
+        assert Y.C is not None  # (neither factored returned above)
         Q = Ps @ Y.C.T
     return _blocked_argmin(Q, Pt, X.sqnorms(rows), Y.sqnorms(), memory_bytes)
 
@@ -363,6 +364,7 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     ``memory_bytes`` (a cluster can be 20x its average size: 2715 members for a mean of 122
     on a 239k-vertex KIDS target).
     """
+    assert X.C is not None and Y.C is not None  # both factored (every caller's)
     Ps = X.P if rows is None else X.P[rows]
     Pt, Pc = Y.P, Y.P[centres]
     Q = Ps @ (X.C @ Y.C.T)  # [n, k_t]: x.y = Q(x) . Pt(y)

@@ -266,8 +266,8 @@ def _interior_view(src: PreparedShape, setup: _PartialSetup, order: str = "deepe
     view.features = torch.as_tensor(keep, dtype=torch.int64)
     inner = np.flatnonzero(setup.interior)
     V, _ = src.mesh.numpy()
-    order = farthest_point_sampling(V[inner], min(inner.size, _INTERIOR_SAMPLES))
-    view.caches.fps = torch.as_tensor(inner[order.numpy()], dtype=torch.int64)
+    picked = farthest_point_sampling(V[inner], min(inner.size, _INTERIOR_SAMPLES))
+    view.caches.fps = torch.as_tensor(inner[picked.numpy()], dtype=torch.int64)
     return view
 
 

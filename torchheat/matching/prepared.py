@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeGuard
 
 import numpy as np
 import torch
@@ -25,6 +25,7 @@ from ..descriptors import (
 from ..eigen import DEFAULT_EIGENPAIRS
 from ..heat import HeatKernel
 from ..mesh import Mesh, MeshError, as_mesh
+from ..operators import Boundary, Kind
 from .options import _PREPARE_LEAST, _check_numbers
 
 __all__ = ["CachedShape", "PreparedShape", "ShapeCaches", "is_cached_shape", "prepare"]
@@ -225,7 +226,7 @@ class CachedShape(Protocol):
     def heat_kernel(self, **kw: Any) -> HeatKernel: ...
 
 
-def is_cached_shape(x: Any) -> bool:
+def is_cached_shape(x: Any) -> TypeGuard[CachedShape]:
     """Whether ``x`` is a dataset shape (:class:`CachedShape`) rather than a mesh.
 
     Examples
@@ -248,8 +249,8 @@ def prepare(
     max_features: int = 50,
     k: int | None = None,
     rtol: float = 1e-6,
-    kind: str | None = None,
-    boundary: str | None = None,
+    kind: Kind | None = None,
+    boundary: Boundary | None = None,
     hk: HeatKernel | None = None,
     eigenpairs: tuple | None = None,
     num_threads: int | None = None,
@@ -366,7 +367,7 @@ def prepare(
 
 
 def _cached_heat_kernel(shape: CachedShape, times: Any, k: int | None, rtol: float,
-                        kind: str | None, boundary: str | None,
+                        kind: Kind | None, boundary: Boundary | None,
                         num_threads: int | None) -> HeatKernel:
     """The heat kernel :func:`prepare` would build, from a dataset shape's cached eigenpairs
     (the same eigenpairs, so the same prepared shape)."""

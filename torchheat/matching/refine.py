@@ -9,7 +9,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
@@ -99,6 +99,18 @@ class Hypothesis:
     """A piece: which dense map was kept, ``"heat kernel"`` or ``"zoomout"``."""
     partial_dense_quality: dict[str, float] | None = None
     """A piece: the partial quality of both dense maps."""
+
+
+_T = TypeVar("_T")
+
+
+def _known(value: _T | None) -> _T:
+    """``value``, which an earlier stage has set: a :class:`Hypothesis` field read by a stage
+    after the one that sets it (refinement sets ``lms0, g, energy, orientation`` of every
+    hypothesis; the ZoomOut choice ``zo`` and ``zo_orientation`` of every candidate it
+    compares), or a map that the options guarantee. For the type checker; never None."""
+    assert value is not None, "read before the stage that sets it"
+    return value
 
 
 # Precision of the intermediate refinement rounds. The descriptors are centred (the constant

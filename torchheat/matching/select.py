@@ -16,10 +16,11 @@ The chosen maps are refined to every mode and made dense when first asked for.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable, Iterable
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 import numpy as np
 import torch
@@ -33,10 +34,22 @@ from .orientation import _orientation, _orientation_signs, _triangles
 from .partial import dense_partial_map, partial_zoomout
 from .prepared import PreparedShape, _fps, _memoised
 from .quality import AMBIGUOUS_BELOW, map_quality
-from .refine import Hypothesis, _agree, _Refiner
+from .refine import Hypothesis, _agree, _known, _Refiner
 from .zoomout import ZoomOutResult, dense_spectral_map, fine_map, spectral_map, zoomout
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
 _T = TypeVar("_T")
+
+
+class _Kind(TypedDict, total=False):
+    """The kind flag of a candidate made here (:func:`_twin`, :func:`_landmark_free`)."""
+
+    reoriented: bool
+    trimmed: bool
+    half_turn: bool
+    descriptor_seed: bool
 
 _ZO_SELECT_K = 100  # ZoomOut size at which hypotheses are compared (then refined to all modes)
 _ZO_STEP = 8  # modes added per ZoomOut step
@@ -61,8 +74,8 @@ def _distinct_hypotheses(pool: list[Hypothesis], Vt: np.ndarray, radius: float, 
     """Lowest energy first, dropping a hypothesis whose sample images lie within ``radius``
     of an earlier one's on 90 % of the samples (several seeds converge to the same map)."""
     out: list[Hypothesis] = []
-    for r in sorted(pool, key=lambda r: r.energy):
-        if not _copies(Vt, r.g, (o.g for o in out), radius):
+    for r in sorted(pool, key=lambda r: _known(r.energy)):
+        if not _copies(Vt, _known(r.g), (_known(o.g) for o in out), radius):
             out.append(r)
         if len(out) >= limit:
             break
@@ -145,9 +158,10 @@ def _prefetch_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     rows = _fps(src, opt.zoomout_samples)
     targets = _fps(tgt, _ZO_TARGETS)
     k_sel = min(_ZO_SELECT_K, phi_s.shape[1], phi_t.shape[1])
-    jobs = [lambda r=r: _memo_zoomout(memo, phi_s, phi_t, samples, r.g, rows,
-                                      k_start=_ZO_START_K, k_end=k_sel, targets=targets)
-            for r in cands]
+    jobs: list[Callable[[], ZoomOutResult]] = [
+        functools.partial(_memo_zoomout, memo, phi_s, phi_t, samples, _known(r.g), rows,
+                          k_start=_ZO_START_K, k_end=k_sel, targets=targets)
+        for r in cands]
     pos = torch.full((src.n,), -1, dtype=torch.int64)
     pos[rows] = torch.arange(rows.numel())
     if opt.descriptor_seed and bool((pos[samples] >= 0).all()):  # the longest first
@@ -212,7 +226,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
     memo = {} if memo is None else memo
 
     def score(r: Hypothesis, sign: float) -> float:
-        o = min(sign * r.zo_orientation, _ZO_ORIENT_CLIP)
+        o = min(sign * _known(r.zo_orientation), _ZO_ORIENT_CLIP)
         return _base_score(r, tear) - w * o
 
     def upsampled(seed_rows: torch.Tensor, seed_images: torch.Tensor) -> ZoomOutResult:
@@ -220,9 +234,9 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
 
     with threads(opt.num_threads):
-        _prefetch([lambda r=r: upsampled(samples, r.g) for r in cands], phi_s)
+        _prefetch([functools.partial(upsampled, samples, _known(r.g)) for r in cands], phi_s)
         for r in cands:
-            zo = upsampled(samples, r.g)
+            zo = upsampled(samples, _known(r.g))
             r.zo = zo
             r.zo_orientation = orient(zo.images)
         # positions of the refinement samples among the rows (None if a sample is not a row)
@@ -234,6 +248,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
                   + ([lambda: _descriptor_zoomout(src, tgt, rows, at, k_sel, targets, memo)]
                      if opt.descriptor_seed and at is not None else []), phi_s)
         if partners:
+            assert at is not None  # (partners needs it)
             cands += _mirror_partners(src, tgt, rows, at, cands, mirror_seeds, k_sel,
                                       targets, orient, memo)
         if opt.descriptor_seed and at is not None:
@@ -243,7 +258,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
             timings["descriptor_seed"] = time.perf_counter() - t_d
         if opt.orientation and opt.trimmed_twins:
             t_t = time.perf_counter()
-            parents = [r for r in cands if r.zo_orientation > 0]
+            parents = [r for r in cands if _known(r.zo_orientation) > 0]
             cands += _trimmed_candidates(src, tgt, rows, pos, at, tri, parents, k_sel,
                                          targets, orient, memo)
             timings["zoomout_trim"] = time.perf_counter() - t_t
@@ -275,7 +290,7 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
 
     direct = min(cands, key=lambda r: score(r, 1.0))
     polished_direct = direct
-    if id(direct) in was and was[id(direct)].zo_score < score(direct, 1.0):
+    if id(direct) in was and _known(was[id(direct)].zo_score) < score(direct, 1.0):
         # the chosen map scored better as it was: polishing only coarsened it
         direct = was[id(direct)]
     # the margin: to the best different whole map, polished or as it was before (a choice
@@ -285,28 +300,30 @@ def _spectral_choice(src: PreparedShape, tgt: PreparedShape, samples: torch.Tens
         tgt)
     direct.zo_margin = None if margin is None else max(margin, 0.0)
     if (opt.tie_break and direct.zo_rival is not None
-            and direct.zo_margin < AMBIGUOUS_BELOW):
+            and _known(direct.zo_margin) < AMBIGUOUS_BELOW):  # (set with the rival)
         direct = _descriptor_tie_break(src, tgt, rows, direct)
     direct.zo_near, direct.zo_near_rival = _near_gap(
         direct, cands + before, lambda r: score(r, 1.0) if r.zo_score is None else r.zo_score,
         tgt)
     rest = [r for r in cands if r is not direct and r is not polished_direct
-            and (not opt.orientation or r.zo_orientation < 0)]
+            and (not opt.orientation or _known(r.zo_orientation) < 0)]
     sym = min(rest, key=lambda r: score(r, -1.0)) if rest else None
     # diagnostics: (rows, images, residual, orientation, chosen, landmark-free, tear, kind,
     # polished) of every ZoomOut candidate, and of the chosen one when the tie-break took a
     # rival as it was before polishing (one of ``before``, not in ``cands``)
     listed = cands + ([] if any(r is direct for r in cands) else [direct])
-    diag = [(r.zo.rows, r.zo.images, r.zo.residual, r.zo_orientation, r is direct,
-             r.descriptor_seed, float("nan") if r.zo_tear is None else r.zo_tear,
+    diag = [(_known(r.zo).rows, _known(r.zo).images, _known(r.zo).residual, r.zo_orientation,
+             r is direct, r.descriptor_seed, float("nan") if r.zo_tear is None else r.zo_tear,
              "reoriented" if r.reoriented else "trimmed" if r.trimmed
              else "half-turn" if r.half_turn else "", r.polished)
             for r in listed]
     timings["zoomout_select"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    for r in (direct, sym):
-        if r is not None and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9):
-            r.zo = _zoomout_final(src, tgt, rows, r.zo.images, opt, k_start=k_sel)
+    for chosen in (direct, sym):
+        if (chosen is not None
+                and k_sel < min(phi_s.shape[1], phi_t.shape[1], opt.zoomout_k or 10**9)):
+            chosen.zo = _zoomout_final(src, tgt, rows, _known(chosen.zo).images, opt,
+                                       k_start=k_sel)
     timings["zoomout"] = time.perf_counter() - t0
     return direct, sym, diag
 
@@ -364,11 +381,12 @@ class _Tear:
 
 def _base_score(r: Hypothesis, tear: _Tear) -> float:
     """``log(residual) + tear.weight * tear`` of a ZoomOut candidate (the tear memoised)."""
+    zo = _known(r.zo)
     if not tear.weight:
-        return math.log(max(r.zo.residual, 1e-300))
+        return math.log(max(zo.residual, 1e-300))
     if r.zo_tear is None:
-        r.zo_tear = tear(r.zo.images)
-    return math.log(max(r.zo.residual, 1e-300)) + tear.weight * r.zo_tear
+        r.zo_tear = tear(zo.images)
+    return math.log(max(zo.residual, 1e-300)) + tear.weight * r.zo_tear
 
 
 _REORIENT_TOP = 4  # candidates of least log(residual) + tear that get a reoriented twin
@@ -398,8 +416,9 @@ def _reoriented_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.T
     def twin(im: torch.Tensor) -> ZoomOutResult:
         return _reoriented_zoomout(src, tgt, rows, im, k_sel, targets, memo)
 
-    _prefetch([lambda im=r.zo.images: twin(im) for r in top], src.hk.eigenvectors)
-    return [_twin(r, twin(r.zo.images), at_samples, orient, reoriented=True) for r in top]
+    _prefetch([functools.partial(twin, _known(r.zo).images) for r in top], src.hk.eigenvectors)
+    return [_twin(r, twin(_known(r.zo).images), at_samples, orient, reoriented=True)
+            for r in top]
 
 
 def _reoriented_zoomout(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
@@ -426,7 +445,7 @@ def _reoriented_zoomout(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
 
 
 def _twin(parent: Hypothesis, zo: ZoomOutResult, at_samples: torch.Tensor | None,
-          orient: Callable[[torch.Tensor], float], **kind: bool) -> Hypothesis:
+          orient: Callable[[torch.Tensor], float], **kind: Unpack[_Kind]) -> Hypothesis:
     """A candidate made from ``parent`` (its landmarks and round-1 readings) with a ZoomOut
     of its own: that ZoomOut's orientation, its images of the refinement samples (positions
     ``at_samples`` among the rows; None keeps the parent's), no tear yet (the twin's own is
@@ -510,9 +529,9 @@ def _half_turn_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     (:func:`_seeded_candidates`).
     """
     _, phi_t = _bases(src, tgt)
-    parents = sorted((r for r in cands if r.zo_orientation >= _TURN_PARENT),
+    parents = sorted((r for r in cands if _known(r.zo_orientation) >= _TURN_PARENT),
                      key=score)[:_TURN_TOP]
-    seeds = (targets[spectral_map(phi_t, phi_t[targets], rotation, r.zo.images)[1]]
+    seeds = (targets[spectral_map(phi_t, phi_t[targets], rotation, _known(r.zo).images)[1]]
              for r in parents)
     return _seeded_candidates(src, tgt, rows, at_samples, cands, seeds, k_sel, targets, orient,
                               memo, half_turn=True)
@@ -544,11 +563,12 @@ def _polish_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     leaders: list[torch.Tensor] = []  # ZoomOut images of the maps polished so far
     dropped: set[int] = set()
     for r in sorted((r for r in cands if score(r) <= best + _CLEAR_MARGIN), key=score):
-        if _copies(Vt, r.zo.images, leaders, radius):
+        images = _known(r.zo).images
+        if _copies(Vt, images, leaders, radius):
             dropped.add(id(r))
             continue
-        leaders.append(r.zo.images)
-        g = polish(r.zo.images[at_samples])
+        leaders.append(images)
+        g = polish(images[at_samples])
         zo = _memo_zoomout(memo, phi_s, phi_t, samples, g, rows, k_start=_ZO_START_K,
                            k_end=k_sel, targets=targets)
         r.zo, r.zo_orientation, r.g = zo, orient(zo.images), zo.images[at_samples]
@@ -591,6 +611,7 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     to rounding (:data:`_TIE_ROUNDING`) are a tie, and a tie keeps the chosen map.
     """
     rival = direct.zo_rival
+    assert rival is not None  # called only for a choice with a rival
     lam = np.concatenate([src.hk.eigenvalues.double().numpy(),
                           tgt.hk.eigenvalues.double().numpy()])
     pos = lam[lam > 1e-8 * np.abs(lam).max()]
@@ -600,7 +621,7 @@ def _descriptor_tie_break(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     Dt = _log_wks(tgt, energies, sigma)
 
     def error(r: Hypothesis) -> float:
-        return float(np.abs(Ds - Dt[r.zo.images.numpy()]).mean())
+        return float(np.abs(Ds - Dt[_known(r.zo).images.numpy()]).mean())
 
     e_direct, e_rival = error(direct), error(rival)
     if e_rival >= e_direct - _TIE_ROUNDING * float(np.abs(Ds).mean()):  # a tie keeps the choice
@@ -633,7 +654,7 @@ def _same_as(tgt: PreparedShape) -> Callable[[Hypothesis, Hypothesis], bool]:
     every comparison."""
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
-    return lambda a, b: _copies(Vt, a.zo.images, (b.zo.images,), radius)
+    return lambda a, b: _copies(Vt, _known(a.zo).images, (_known(b.zo).images,), radius)
 
 
 def _near_gap(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothesis], float],
@@ -660,7 +681,8 @@ def _rival(chosen: Hypothesis, cands: list[Hypothesis], score: Callable[[Hypothe
     radius = _RIVAL_RADIUS * math.sqrt(tgt.mesh.area())
     s0 = score(chosen)
     rivals = [r for r in cands if r is not chosen
-              and _agree(Vt, r.zo.images, chosen.zo.images, radius) < _RIVAL_AGREE]
+              and _agree(Vt, _known(r.zo).images, _known(chosen.zo).images, radius)
+              < _RIVAL_AGREE]
     if not rivals:
         return None, None
     best = min(rivals, key=score)
@@ -703,7 +725,7 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
     phi_s, phi_t = _bases(src, tgt)
     kept: list[tuple[Hypothesis, torch.Tensor]] = []
     for r in parents:
-        images = r.zo.images
+        images = _known(r.zo).images
         sg = _orientation_signs(src, tgt, tri, lambda i, f=images: f[pos[i]].numpy())
         keep_np = sg[nb].mean(axis=1) > 0  # per row: its neighbourhood keeps the orientation
         if keep_np.sum() < _TRIM_MIN or keep_np.mean() >= 0.99:
@@ -711,10 +733,10 @@ def _trimmed_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tens
         kept.append((r, torch.from_numpy(keep_np)))
 
     def trimmed(r: Hypothesis, keep: torch.Tensor) -> ZoomOutResult:
-        return _memo_zoomout(memo, phi_s, phi_t, rows[keep], r.zo.images[keep], rows,
+        return _memo_zoomout(memo, phi_s, phi_t, rows[keep], _known(r.zo).images[keep], rows,
                              k_start=_ZO_START_K, k_end=k_sel, targets=targets)
 
-    _prefetch([lambda r=r, keep=keep: trimmed(r, keep) for r, keep in kept], phi_s)
+    _prefetch([functools.partial(trimmed, r, keep) for r, keep in kept], phi_s)
     return [_twin(r, trimmed(r, keep), at_samples, orient, trimmed=True) for r, keep in kept]
 
 
@@ -733,10 +755,10 @@ def _mirror_seeds(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
     phi_s, phi_t = _bases(src, tgt)
     src_syms = symmetries_at(src, rows) if _MIRROR_SOURCE else []
     out = []
-    for r in [c for c in cands if c.zo_orientation < _MIRROR_BELOW]:
-        seeds = symmetries_at(tgt, r.zo.images)
+    for r in [c for c in cands if _known(c.zo_orientation) < _MIRROR_BELOW]:
+        seeds = symmetries_at(tgt, _known(r.zo).images)
         for ss in src_syms:
-            j = spectral_map(phi_s, phi_t[targets], r.zo.C, ss)[1]
+            j = spectral_map(phi_s, phi_t[targets], _known(r.zo).C, ss)[1]
             seeds.append(targets[j])
         out.append((r, seeds))
     return out
@@ -764,7 +786,7 @@ def _mirror_partners(src: PreparedShape, tgt: PreparedShape, rows: torch.Tensor,
 
 
 def _landmark_free(zo: ZoomOutResult, at_samples: torch.Tensor,
-                   orient: Callable[[torch.Tensor], float], **kind: bool) -> Hypothesis:
+                   orient: Callable[[torch.Tensor], float], **kind: Unpack[_Kind]) -> Hypothesis:
     """A ZoomOut candidate that no landmark started (no round-1 energy or orientation): its
     images of the refinement samples (positions ``at_samples`` among the ZoomOut rows) and
     its orientation; ``kind``: its flag (``half_turn=True``, ``descriptor_seed=True``)."""
@@ -776,7 +798,7 @@ def _seeded_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
                        at_samples: torch.Tensor, cands: list[Hypothesis],
                        seeds: Iterable[torch.Tensor], k_sel: int, targets: torch.Tensor,
                        orient: Callable[[torch.Tensor], float], memo: dict | None = None,
-                       **kind: bool) -> list[Hypothesis]:
+                       **kind: Unpack[_Kind]) -> list[Hypothesis]:
     """Landmark-free candidates (:func:`_landmark_free`) from seed maps of the ZoomOut
     ``rows`` (target vertex of each row; taken one at a time), each refined by ZoomOut from
     ``_ZO_START_K`` to ``k_sel`` modes; one that is a copy (:func:`_copies`) of a candidate
@@ -788,7 +810,7 @@ def _seeded_candidates(src: PreparedShape, tgt: PreparedShape, rows: torch.Tenso
     for seed in seeds:
         zo = _memo_zoomout(memo, phi_s, phi_t, rows, seed, rows, k_start=_ZO_START_K,
                            k_end=k_sel, targets=targets)
-        if not _copies(Vt, zo.images, (o.zo.images for o in cands + out), radius):
+        if not _copies(Vt, zo.images, (_known(o.zo).images for o in cands + out), radius):
             out.append(_landmark_free(zo, at_samples, orient, **kind))
     return out
 
@@ -844,14 +866,14 @@ def _descriptor_candidate(src: PreparedShape, tgt: PreparedShape, rows: torch.Te
     zo = _descriptor_zoomout(src, tgt, rows, at_samples, k_sel, targets, memo)
     Vt, _ = tgt.mesh.numpy()
     radius = 0.05 * tgt.mesh.bbox_diagonal()
-    agree = [_agree(Vt, zo.images, o.zo.images, radius) for o in cands]
+    agree = [_agree(Vt, zo.images, _known(o.zo).images, radius) for o in cands]
     if any(a >= _ZO_SAME for a in agree):
         return []
     # a variant of a direct landmark candidate (the same map up to a limb or a tail) stays
     # out: measured on TOSCA, such variants won at a lower ZoomOut residual while less right
     # (12 pairs: 95-100 % -> 63-93 %); where the descriptor map was the right one, no direct
     # landmark candidate agreed with it on more than 45 % of the samples
-    if any(o.zo_orientation >= _DESCR_DIRECT and a >= _DESCR_VARIANT
+    if any(_known(o.zo_orientation) >= _DESCR_DIRECT and a >= _DESCR_VARIANT
            for o, a in zip(cands, agree, strict=True)):
         return []
     return [_landmark_free(zo, at_samples, orient, descriptor_seed=True)]
@@ -866,8 +888,8 @@ def _dense_partial_guarded(src: PreparedShape, tgt: PreparedShape, r: Hypothesis
     def compute() -> torch.Tensor:
         t0 = time.perf_counter()
         with threads(opt.num_threads):
-            maps = {"heat kernel": refiner.augment(r.g, None, 1)[0],
-                    "zoomout": dense_partial_map(src, tgt, r.zo.C, opt.num_threads)}
+            maps = {"heat kernel": refiner.augment(_known(r.g), None, 1)[0],
+                    "zoomout": dense_partial_map(src, tgt, _known(r.zo).C, opt.num_threads)}
         qual = {k: map_quality(src, tgt, m, expect=expect, ratio=opt.partial_ratio).quality
                 for k, m in maps.items()}
         r.partial_dense = max(qual, key=lambda k: qual[k])

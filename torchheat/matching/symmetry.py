@@ -9,6 +9,7 @@ from ..mesh import Mesh
 from .pipeline import SYMMETRY_FIXED_WEIGHT, match
 from .prepared import CachedShape, PreparedShape, _as_prepared
 from .quality import map_quality
+from .refine import _known
 from .result import Correspondence, _numbering
 
 __all__ = ["symmetry"]
@@ -67,6 +68,6 @@ def symmetry(
         symmetric_landmarks=corr.landmarks,
         orientation=float("nan") if o is None else float(o),
         info=corr.info,
-        quality=lambda c: map_quality(shape, shape, c.map, None, expect=-1),
+        quality=lambda c: map_quality(shape, shape, _known(c.map), None, expect=-1),
         **_numbering(shape, shape),
     )
