@@ -178,6 +178,29 @@ def test_match_partial_maps_a_piece_into_its_moved_whole(spot_piece):
     assert agree[won] > 0.3  # the right map agrees with the coarse landmark-free one
 
 
+def test_final_map_false_leaves_the_maps_none_and_says_where_it_cannot(spot_piece):
+    """``final_map=False``: no dense map, yet the result prints and reports (its vertex
+    count known without the map); the filled way gives None too; the two stages that choose
+    by the dense maps (a partial match's "auto", ``verify_stage``) refuse it."""
+    import json
+
+    piece, whole, _ = spot_piece
+    S, T = prepare(load_mesh(DATA / "spot.obj")), prepare(whole)
+    corr = match(S, T, final_map=False)
+    assert corr.map is None and corr.quality is None and corr.landmarks
+    assert "map=None" in repr(corr)
+    rep = json.loads(json.dumps(corr.report()))
+    assert rep["n_source"] == S.n == corr.n_source and rep["n_target"] == T.n
+    filled = match(piece, T, partial=True, partial_scale="filled", final_map=False)
+    assert filled.map is None and filled.n_source == piece.n_vertices
+    assert filled.landmarks and all(a < piece.n_vertices for a, _ in filled.landmarks)
+    with pytest.raises(ValueError, match="final_map=True"):
+        match(piece, T, partial=True, final_map=False)
+    with pytest.raises(ValueError, match="final_map=True"):
+        match(S, T, verify_stage=True, final_map=False)
+    assert match(S, T).n_source == S.n  # with a map: the same count
+
+
 def test_partial_auto_skips_the_filled_piece_when_closed_it_is_too_small(spot_piece):
     # the front 45 % of the cow: closed, it covers 55 % of the whole (< 60 %), too little to
     # pass for the whole; only the piece way runs

@@ -90,7 +90,10 @@ def landmark_scores(
     torch.Size([2])
     """
     # (numpy's stubs: np.isscalar narrows p to any numpy scalar, which int() may refuse)
-    ps = [int(p)] if np.isscalar(p) or isinstance(p, int | np.integer) else [int(v) for v in p]  # type: ignore[arg-type]
+    if np.isscalar(p) or isinstance(p, int | np.integer):
+        ps = [int(p)]  # type: ignore[arg-type]
+    else:
+        ps = [int(v) for v in p]
     qf = [int(v) for v in q_fixed]
     if len(qf) != len(ps) - 1:
         raise ValueError("q_fixed must give the images of all but the last source landmark")

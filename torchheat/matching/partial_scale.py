@@ -87,9 +87,8 @@ def _partial_auto(source: Mesh | PreparedShape | CachedShape | Any,
     agreement = {}
     if dense_free is not None:
         pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
-        # (final_map=False leaves the maps None and this fails: a latent bug, left as it was)
-        agreement = {x[1]: _agreement(tgt, x[2].map[pts], dense_free[pts])  # type: ignore[index]
-                     for x in out}
+        # (match refuses final_map=False here: the maps are there)
+        agreement = {x[1]: _agreement(tgt, _known(x[2].map)[pts], dense_free[pts]) for x in out}
     if sure:
         best = out[0]
         part = best[2].info["partial"]
@@ -355,9 +354,7 @@ def _match_filled(source: Mesh | PreparedShape | CachedShape | Any,
 
     return Correspondence(
         **_numbering(src, tgt),
-        # (final_map=False leaves full.map None and this fails when read: a latent bug, left
-        # as it was; the map should be None then)
-        map=lambda: full.map[:n],  # type: ignore[index]
+        map=(lambda: _known(full.map)[:n]) if kw["final_map"] else None,
         landmarks=[(a, b) for a, b in full.landmarks if a < n],
         candidates=full.candidates,
         scores=full.scores,

@@ -272,7 +272,9 @@ def match(
         (measured: the SCAPE pair's match 2.05 s -> 1.5 s on two cores). The result is the
         same either way.
     final_map : bool
-        Build the dense maps (computed on first access of ``.map``); False leaves them None.
+        Build the dense maps (computed on first access of ``.map``); False leaves them None
+        (not with ``verify_stage=True`` or a partial match's ``partial_scale="auto"``, which
+        choose by the dense maps).
     zoomout : bool
         (``method="refine"``, two shapes) Refine spectrally (:func:`~torchheat.matching.
         zoomout.zoomout`, Melzi et al. 2019): the ``zoomout_hypotheses`` best distinct
@@ -486,6 +488,13 @@ def match(
     if partial and target is source:
         # (every way of a partial match would otherwise read it as a self-map)
         raise ValueError("partial=True needs two shapes: the piece and the whole")
+    if not final_map and verify_stage:
+        raise ValueError("verify_stage=True compares the dense maps of both stages: it needs "
+                         "final_map=True")
+    if not final_map and partial and partial_scale == "auto" and method == "refine":
+        raise ValueError("partial_scale='auto' chooses between its two ways by their dense "
+                         "maps: it needs final_map=True (or choose a way: partial_scale='piece' "
+                         "or 'filled')")
     if partial and partial_scale == "auto" and method == "refine":
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
         return _partial_auto(source, target, kw, match)
@@ -800,8 +809,8 @@ def _defect(src: PreparedShape, tgt: PreparedShape, r: Hypothesis) -> float:
     if r.defect is None:
         if callable(r.map):
             r.map = r.map()
-        # (final_map=False leaves the map None and this fails: a latent bug, left as it was)
-        r.defect = map_quality(src, tgt, r.map, orientation=0.0).defect  # type: ignore[arg-type]
+        # (match refuses verify_stage=True with final_map=False: the map is there)
+        r.defect = map_quality(src, tgt, _known(r.map), orientation=0.0).defect
     return r.defect
 
 

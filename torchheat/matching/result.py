@@ -46,6 +46,8 @@ class Correspondence:
     n_source_input : int or None
         Number of vertices of the source file (:attr:`Mesh.n_input_vertices`); needed
         with ``source_vertex_map``.
+    n_source : int or None
+        Number of source vertices matched (the length of :attr:`map`, known without it).
     quality : MapQuality or None
         The map's own evidence of being right (:func:`~torchheat.matching.quality.
         map_quality`: isometry defect of its functional map and its orientation), computed on
@@ -95,6 +97,7 @@ class Correspondence:
         source_vertex_map: torch.Tensor | None = None,
         target_vertex_map: torch.Tensor | None = None,
         n_source_input: int | None = None,
+        n_source: int | None = None,
         quality: MapQuality | Callable[[Correspondence], MapQuality] | None = None,
         rival_map: torch.Tensor | Callable[[], torch.Tensor] | None = None,
     ) -> None:
@@ -114,6 +117,7 @@ class Correspondence:
         self.source_vertex_map = source_vertex_map
         self.target_vertex_map = target_vertex_map
         self.n_source_input = n_source_input
+        self._n_source = n_source
 
     @property
     def quality(self) -> MapQuality | None:
@@ -142,8 +146,7 @@ class Correspondence:
             "version": __version__,
             # the options given that differ from match's defaults (symmetry's own included)
             "options": dict(self.info.get("options", {})),
-            # (final_map=False leaves the map None and this fails: a latent bug, left as it was)
-            "n_source": int(self.map.numel()),  # type: ignore[union-attr]
+            "n_source": self.n_source,
             "n_target": None if self.info.get("n_target") is None
             else int(self.info["n_target"]),
             "method": self.info.get("method"),
@@ -175,6 +178,14 @@ class Correspondence:
             return None
         return {k: part[k] for k in ("ratio", "closed_ratio", "scale", "chosen_by", "agreement",
                                      "quality", "closed_quality") if k in part}
+
+    @property
+    def n_source(self) -> int | None:
+        """Number of source vertices (the rows of :attr:`map`), also without a map."""
+        if self._n_source is not None:
+            return self._n_source
+        m = self.map
+        return None if m is None else int(m.numel())
 
     @property
     def map(self) -> torch.Tensor | None:
@@ -276,8 +287,8 @@ class Correspondence:
         return full
 
     def __repr__(self) -> str:
-        # (final_map=False leaves the map None and this fails: a latent bug, left as it was)
-        n = "lazy" if callable(self._map) else tuple(self._map.shape)  # type: ignore[union-attr]
+        n = ("lazy" if callable(self._map) else None if self._map is None
+             else tuple(self._map.shape))
         return (f"Correspondence(map={n}, landmarks={len(self.landmarks)}, "
                 f"symmetric={self.has_symmetric_map}, orientation={self.orientation:+.3f})")
 
@@ -289,4 +300,4 @@ def _numbering(src: PreparedShape, tgt: PreparedShape) -> dict:
         return None if mesh.n_vertices == mesh.n_input_vertices else mesh.vertex_map
 
     return {"source_vertex_map": vertex_map(src.mesh), "target_vertex_map": vertex_map(tgt.mesh),
-            "n_source_input": src.mesh.n_input_vertices}
+            "n_source_input": src.mesh.n_input_vertices, "n_source": src.n}
