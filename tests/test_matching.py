@@ -1042,6 +1042,20 @@ def test_descriptor_tie_break_picks_the_signature_keeping_map(asym_pair):
     assert json.loads(json.dumps(corr.report()))["tie_break"] == [0.01, 0.02]
 
 
+def test_tie_break_rival_wins_only_beyond_the_band_and_rounding():
+    """The rival must be lower by more than 2 % and more than rounding: the SCAPE and
+    held-out breaks read error ratios 0.988-0.999, the fixes 0.80-0.96."""
+    from torchheat.matching.select import _TIE_BAND, _rival_wins
+
+    assert _TIE_BAND == 0.02
+    assert _rival_wins(0.100, 0.096, 1.0)  # 4 % lower (a fix read 0.956)
+    assert not _rival_wins(0.0801, 0.0798, 1.0)  # 0.4 % (SCAPE mesh005 -> 007, a break)
+    assert not _rival_wins(0.100, 0.0981, 1.0)  # 1.9 %: inside the band
+    assert not _rival_wins(0.100, 0.100, 1.0) and not _rival_wins(0.1, 0.2, 1.0)
+    # exact isometries: errors at rounding level, 3 % apart, still a tie
+    assert not _rival_wins(1.69e-13, 1.64e-13, 1.0)
+
+
 def test_descriptor_tie_break_keeps_the_choice_on_an_exact_tie(mirror_pair):
     """An exactly mirror-symmetric mesh and a moved copy: the direct map and the mirror map
     are both exact isometries, their signature errors differ by rounding only, and the
