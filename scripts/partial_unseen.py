@@ -87,7 +87,7 @@ def _piece(V: np.ndarray, F: np.ndarray, keep: np.ndarray, name: str) -> Mesh:
 
 
 def _jobs(pc, spec: list[str], n_random: int, seed: int):
-    """``(piece name, pair, kind, faces kept)`` of every piece to run."""
+    """``(piece name, pair, kind, piece mesh)`` of every piece to run."""
     if not n_random:
         for name in spec:
             if name not in pc.names:
@@ -96,7 +96,7 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
             pr = pc[pc.names.index(name)]
             V, F = pr.source.mesh.numpy()
             for kind, keep in fixed_pieces(V, F).items():
-                yield f"{name}:{kind}", pr, kind, keep
+                yield f"{name}:{kind}", pr, kind, _piece(V, F, keep, f"{name}:{kind}")
         return
     for cls in spec:
         pairs = [i for i in range(len(pc)) if pc[i].cls == cls]
@@ -107,13 +107,13 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
             for i in range(n_random):
                 pr = pc[pairs[i % len(pairs)]]
                 V, F = pr.source.mesh.numpy()
+                name = f"{pr.name}:{kind}{i}"
                 for _ in range(50):  # a draw keeping too little (or too much) is drawn again
-                    keep = make(V, F, rng)
-                    piece = _piece(V, F, keep, "piece")
+                    piece = _piece(V, F, make(V, F, rng), name)
                     r = piece.area() / pr.source.mesh.area()
                     if 0.14 <= r <= (0.88 if kind == "cut" else 0.94) and piece.n_vertices >= 300:
                         break
-                yield f"{pr.name}:{kind}{i}", pr, kind, keep
+                yield name, pr, kind, piece
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -137,17 +137,16 @@ def main(argv: list[str] | None = None) -> None:
                 done[rec["piece"]] = rec
     solvers: dict[str, GeodesicSolver] = {}
     with open(args.out, "a") as out:
-        for piece_name, pr, kind, keep in _jobs(pc, args.spec.split(","), args.random,
-                                                args.seed):
+        for piece_name, pr, kind, P in _jobs(pc, args.spec.split(","), args.random,
+                                             args.seed):
             if piece_name in done:
                 continue
-            V, F = pr.source.mesh.numpy()
+            n = pr.source.mesh.n_vertices
             W, G = pr.target.mesh.numpy()
-            gt = np.full(len(V), -1)
+            gt = np.full(n, -1)
             gt[pr.gt_src.numpy()] = pr.gt_tgt.numpy()
-            gsym = np.full(len(V), -1)
+            gsym = np.full(n, -1)
             gsym[pr.gt_src.numpy()] = pr.gt_sym_tgt.numpy()
-            P = _piece(V, F, keep, piece_name)
             t0 = time.perf_counter()
             corr = torchheat.match(P, Mesh(W, G, name=pr.target.name), partial=True)
             seconds = time.perf_counter() - t0
@@ -156,7 +155,9 @@ def main(argv: list[str] | None = None) -> None:
             if 0 < args.points < ok.size:
                 ok = np.sort(np.random.default_rng([args.seed, zlib.crc32(piece_name.encode())])
                              .choice(ok, args.points, replace=False))
-            solver = solvers.setdefault(pr.target.name, GeodesicSolver((W, G)))
+            if pr.target.name not in solvers:  # one per target (setdefault built it each time)
+                solvers[pr.target.name] = GeodesicSolver((W, G))
+            solver = solvers[pr.target.name]
             m = corr.map.numpy()[ok]
             e = geodesic_errors((W, G), m, gt[rows][ok], solver=solver)
             es = geodesic_errors((W, G), m, gsym[rows][ok], solver=solver)

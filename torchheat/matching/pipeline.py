@@ -491,11 +491,11 @@ def match(
     if not final_map and verify_stage:
         raise ValueError("verify_stage=True compares the dense maps of both stages: it needs "
                          "final_map=True")
-    if not final_map and partial and partial_scale == "auto" and method == "refine":
-        raise ValueError("partial_scale='auto' chooses between its two ways by their dense "
-                         "maps: it needs final_map=True (or choose a way: partial_scale='piece' "
-                         "or 'filled')")
     if partial and partial_scale == "auto" and method == "refine":
+        if not final_map:
+            raise ValueError("partial_scale='auto' chooses between its two ways by their dense "
+                             "maps: it needs final_map=True (or choose a way: "
+                             "partial_scale='piece' or 'filled')")
         kw = {k: v for k, v in locals().items() if k not in ("source", "target")}
         return _partial_auto(source, target, kw, match)
     if partial and partial_scale == "filled":
