@@ -613,6 +613,30 @@ def test_correspondence_maps_are_computed_once_on_first_access():
     assert not none.has_symmetric_map and none.symmetric_map is None
 
 
+def test_swapped_exchanges_maps_and_computes_deferred_ones_once():
+    calls = []
+
+    def make(v):
+        def f():
+            calls.append(v)
+            return torch.full((3,), v)
+        return f
+
+    c = tm.Correspondence(make(1), [(0, 0)], torch.tensor([0]), torch.tensor([0.0]),
+                          symmetric_map=make(2), symmetric_landmarks=[(0, 2)],
+                          orientation=0.9, rival_map=make(3))
+    s = c.swapped(orientation=-0.8)
+    assert calls == []  # still deferred
+    assert s.map.tolist() == [2, 2, 2] and s.landmarks == [(0, 2)] and s.orientation == -0.8
+    assert c.symmetric_map.tolist() == [2, 2, 2] and calls == [2]  # computed once for both
+    assert s.symmetric_map.tolist() == [1, 1, 1] and c.map.tolist() == [1, 1, 1]
+    assert calls == [2, 1] and s.symmetric_landmarks == [(0, 0)]
+    assert not s.has_rival_map and s.quality is None and s.n_source == 3
+    assert s.swapped().map.tolist() == [1, 1, 1] and calls == [2, 1]
+    with pytest.raises(ValueError, match="no symmetric map"):
+        tm.Correspondence(torch.arange(3), [], torch.tensor([0]), torch.tensor([0.0])).swapped()
+
+
 def test_pruned_search_equals_brute_force(asym_pair):
     # real descriptors (clustered structure), a near-isometric pair: the dense map of the
     # refinement by cluster pruning is the brute-force map

@@ -223,6 +223,79 @@ class Correspondence:
         """Whether the choice had a rival (a different whole map), without computing it."""
         return self._rival_map is not None
 
+    def swapped(
+        self,
+        *,
+        orientation: float = float("nan"),
+        quality: MapQuality | Callable[[Correspondence], MapQuality] | None = None,
+    ) -> Correspondence:
+        """The same match with the direct and the symmetric map exchanged.
+
+        For when the symmetric alternative is the map wanted: :func:`~torchheat.symmetry`
+        takes a shape's match with itself this way (its direct map is near the identity).
+        Maps not yet computed stay deferred, and are computed once for both results. The
+        candidates, scores, info and vertex numbering are shared; there is no rival map
+        (the rival was the direct map's).
+
+        Parameters
+        ----------
+        orientation : float
+            Orientation score of the new direct map (default NaN: not tested).
+        quality : MapQuality or callable, optional
+            Its quality, or a function of the new result computing it on first access.
+
+        Returns
+        -------
+        Correspondence
+
+        Raises
+        ------
+        ValueError
+            Without a symmetric map.
+
+        Examples
+        --------
+        >>> c = Correspondence(torch.tensor([0, 1]), [(0, 0)], torch.tensor([0]),
+        ...                    torch.tensor([0.0]), symmetric_map=torch.tensor([1, 0]),
+        ...                    symmetric_landmarks=[(0, 1)])
+        >>> s = c.swapped()
+        >>> s.map.tolist(), s.symmetric_map.tolist(), s.landmarks
+        ([1, 0], [0, 1], [(0, 1)])
+        """
+        if not self.has_symmetric_map:
+            raise ValueError("this correspondence has no symmetric map to swap in")
+        return Correspondence(
+            map=self._sharing("_symmetric_map"),
+            landmarks=list(self.symmetric_landmarks or []),
+            candidates=self.candidates,
+            scores=self.scores,
+            symmetric_map=self._sharing("_map"),
+            symmetric_landmarks=self.landmarks,
+            orientation=orientation,
+            info=self.info,
+            source_vertex_map=self.source_vertex_map,
+            target_vertex_map=self.target_vertex_map,
+            n_source_input=self.n_source_input,
+            n_source=self._n_source,
+            quality=quality,
+        )
+
+    def _sharing(self, field: str) -> torch.Tensor | Callable[[], torch.Tensor] | None:
+        """The map in ``field`` (``"_map"`` or ``"_symmetric_map"``) as given to a result
+        sharing it: a deferred map becomes one computed once for both results."""
+        value = getattr(self, field)
+        if not callable(value):
+            return value
+
+        def compute() -> torch.Tensor:
+            current = getattr(self, field)
+            if callable(current):  # not computed yet: compute and keep it here too
+                current = current()
+                setattr(self, field, current)
+            return current
+
+        return compute
+
     def full_map(self) -> torch.Tensor | None:
         """The direct map in the numbering of the input files.
 

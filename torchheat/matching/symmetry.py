@@ -10,7 +10,7 @@ from .pipeline import SYMMETRY_FIXED_WEIGHT, match
 from .prepared import CachedShape, PreparedShape, _as_prepared
 from .quality import map_quality
 from .refine import _known
-from .result import Correspondence, _numbering
+from .result import Correspondence
 
 __all__ = ["symmetry"]
 
@@ -59,15 +59,7 @@ def symmetry(
     if not corr.has_symmetric_map:
         return corr
     o = corr.info.get("sym_orientation")  # None with method="paper" (not tested)
-    return Correspondence(
-        map=corr._symmetric_map,  # still lazy: only the map asked for is computed
-        landmarks=corr.symmetric_landmarks,
-        candidates=corr.candidates,
-        scores=corr.scores,
-        symmetric_map=corr._map,
-        symmetric_landmarks=corr.landmarks,
-        orientation=float("nan") if o is None else float(o),
-        info=corr.info,
-        quality=lambda c: map_quality(shape, shape, _known(c.map), None, expect=-1),
-        **_numbering(shape, shape),
-    )
+    # the reversing self-map first; maps still deferred are computed only when asked for
+    return corr.swapped(orientation=float("nan") if o is None else float(o),
+                        quality=lambda c: map_quality(shape, shape, _known(c.map), None,
+                                                      expect=-1))
