@@ -8,6 +8,7 @@ exact answer) and the known mirror permutation of a mesh symmetric under y -> -y
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 
@@ -595,15 +596,17 @@ def test_symmetry_on_real_cat_follows_sym_ground_truth():
     assert torch.equal(corr.symmetric_map, torch.arange(len(m)))
 
 
+def _deferred(v, calls):
+    """A deferred map (a zero-argument callable) of three entries ``v``, recording its calls."""
+    def f():
+        calls.append(v)
+        return torch.full((3,), v)
+    return f
+
+
 def test_correspondence_maps_are_computed_once_on_first_access():
-    calls = []
-
-    def make(v):
-        def f():
-            calls.append(v)
-            return torch.full((3,), v)
-        return f
-
+    calls: list[int] = []
+    make = functools.partial(_deferred, calls=calls)
     c = tm.Correspondence(make(1), [(0, 0)], torch.tensor([0]), torch.tensor([0.0]),
                           symmetric_map=make(2))
     assert c.has_symmetric_map and calls == []  # nothing computed yet
@@ -614,14 +617,8 @@ def test_correspondence_maps_are_computed_once_on_first_access():
 
 
 def test_swapped_exchanges_maps_and_computes_deferred_ones_once():
-    calls = []
-
-    def make(v):
-        def f():
-            calls.append(v)
-            return torch.full((3,), v)
-        return f
-
+    calls: list[int] = []
+    make = functools.partial(_deferred, calls=calls)
     c = tm.Correspondence(make(1), [(0, 0)], torch.tensor([0]), torch.tensor([0.0]),
                           symmetric_map=make(2), symmetric_landmarks=[(0, 2)],
                           orientation=0.9, rival_map=make(3))
