@@ -78,6 +78,23 @@ def test_orientation_operators_match_a_face_by_face_reference():
     assert np.abs(out - ref).max() < 1e-10 * np.abs(ref).max()
 
 
+def test_orientation_operators_bits_do_not_depend_on_the_gradient_block(monkeypatch):
+    # the face gradients are built in blocks of _GRADIENT_BLOCK faces and used in chunks of
+    # _FACE_CHUNK: blocks of whole chunks, with a last partial block, give the same bits as
+    # blocks of one chunk (the products are accumulated chunk by chunk, at the same faces)
+    assert fmap._GRADIENT_BLOCK % fmap._FACE_CHUNK == 0
+    V, F = generic_sphere(2)
+    assert len(F) % (2 * fmap._FACE_CHUNK) != 0
+    rng = np.random.default_rng(5)
+    phi, descr = rng.standard_normal((len(V), 6)), rng.standard_normal((len(V), 4))
+    monkeypatch.setattr(fmap, "_GRADIENT_BLOCK", fmap._FACE_CHUNK)
+    ref = fmap.orientation_operators(V, F, phi, descr)
+    for block in (fmap._FACE_CHUNK * 2, fmap._FACE_CHUNK * 3, 10**6):
+        monkeypatch.setattr(fmap, "_GRADIENT_BLOCK", block)
+        out = fmap.orientation_operators(V, F, phi, descr)
+        assert np.array_equal(out, ref), block
+
+
 def test_wks_is_invariant_to_renumbering_and_rigid_motion():
     V, F = generic_sphere(3)
     perm = np.random.default_rng(1).permutation(len(V))

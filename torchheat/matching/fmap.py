@@ -112,6 +112,11 @@ def _face_frames(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 _FACE_CHUNK = 128  # faces per block of orientation_operators (a (128, p, k) block: ~1.5 MB)
+# Faces whose gradients orientation_operators builds at once (elementwise, so the same bits
+# as chunk by chunk; 4096 x 3 x 100 float64: ~10 MB): 128-face gradient blocks spent a fifth
+# of its time in small-tensor overhead (thirty-fourth session, BENCHMARKS.md). A multiple of
+# _FACE_CHUNK, so that the products are summed over the same chunks of faces as before.
+_GRADIENT_BLOCK = 4096
 
 
 def orientation_operators(V: np.ndarray, F: np.ndarray, phi: np.ndarray, descr: np.ndarray
@@ -150,26 +155,27 @@ def orientation_operators(V: np.ndarray, F: np.ndarray, phi: np.ndarray, descr: 
     de = torch.from_numpy(np.ascontiguousarray(descr, dtype=np.float64))
     gBt, nt = torch.from_numpy(gB), torch.from_numpy(n)
     out = torch.zeros((k, p * k), dtype=torch.float64)
-    # faces in chunks, every per-face array built there and used while in cache (built whole,
-    # the (m, 3, p) gradients took as long as the products); w is (chunk, p, k)
-    for a in range(0, m, _FACE_CHUNK):
-        b = min(m, a + _FACE_CHUNK)
-        f, g = Ft[a:b], gBt[a:b]
-        # face-wise gradients of the basis and the descriptors: (chunk, 3, k), (chunk, 3, p)
+    for A in range(0, m, _GRADIENT_BLOCK):
+        B = min(m, A + _GRADIENT_BLOCK)
+        f, g = Ft[A:B], gBt[A:B]
+        # face-wise gradients of the basis and the descriptors: (block, 3, k), (block, 3, p)
         gp, gd = ((g[:, 0, :, None] * X[f[:, 0]][:, None, :]
                    + g[:, 1, :, None] * X[f[:, 1]][:, None, :]
                    + g[:, 2, :, None] * X[f[:, 2]][:, None, :]) for X in (ph, de))
-        # n x grad f_q, component by component (chunk, p)
-        nf = nt[a:b, :, None]
+        # n x grad f_q, component by component (block, p)
+        nf = nt[A:B, :, None]
         r0 = nf[:, 1] * gd[:, 2] - nf[:, 2] * gd[:, 1]
         r1 = nf[:, 2] * gd[:, 0] - nf[:, 0] * gd[:, 2]
         r2 = nf[:, 0] * gd[:, 1] - nf[:, 1] * gd[:, 0]
         # w[f] = rot[f] @ grad_phi[f], an inner dimension of 3: three broadcast products
-        # (twice as fast as torch.bmm's batch of tiny products; equal to 1e-14)
-        w = r0[:, :, None] * gp[:, None, 0, :]
-        w.addcmul_(r1[:, :, None], gp[:, None, 1, :])
-        w.addcmul_(r2[:, :, None], gp[:, None, 2, :])
-        out += avg[a:b].T @ w.reshape(b - a, p * k)
+        # (twice as fast as torch.bmm's batch of tiny products; equal to 1e-14), in chunks
+        # kept in cache; w is (chunk, p, k)
+        for a in range(0, B - A, _FACE_CHUNK):
+            b = min(B - A, a + _FACE_CHUNK)
+            w = r0[a:b, :, None] * gp[a:b, None, 0, :]
+            w.addcmul_(r1[a:b, :, None], gp[a:b, None, 1, :])
+            w.addcmul_(r2[a:b, :, None], gp[a:b, None, 2, :])
+            out += avg[A + a : A + b].T @ w.reshape(b - a, p * k)
     return out.reshape(k, p, k).permute(1, 0, 2).numpy()
 
 
