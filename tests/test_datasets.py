@@ -490,3 +490,30 @@ def test_folder_lists_compressed_meshes_by_their_inner_name(spot_files, tmp_path
     V1, _ = shapes[1].mesh.numpy()
     V0, _ = shapes[0].mesh.numpy()
     assert np.array_equal(V0, V1)  # the same mesh, read through gzip
+
+
+def test_a_files_mesh_warning_is_shown_once_per_collection(tmp_path):
+    # a shape is read again on every access (a whole in many pairs): its MeshWarning once
+    import warnings
+
+    from torchheat.mesh import MeshWarning
+
+    V = [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]]
+    F = [[0, 1, 2], [0, 1, 3], [0, 1, 4]]  # edge (0, 1) in three faces
+    path = tmp_path / "fan.off"
+    path.write_text("OFF\n5 3 0\n" + "".join(f"{x} {y} {z}\n" for x, y, z in V)
+                    + "".join(f"3 {a} {b} {c}\n" for a, b, c in F))
+    ds = ShapeCollection([path])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        meshes = [ds[0].mesh for _ in range(3)]
+        ShapeCollection([path])[0]  # another collection says it again
+    mesh_warnings = [w for w in caught if issubclass(w.category, MeshWarning)]
+    assert len(mesh_warnings) == 2
+    assert "non-manifold edge" in str(mesh_warnings[0].message)
+    assert mesh_warnings[0].filename == __file__  # points at the caller, not the package
+    assert all(m.n_faces == 3 for m in meshes)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MeshWarning)
+        with pytest.raises(MeshWarning):
+            ShapeCollection([path])[0]

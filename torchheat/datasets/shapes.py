@@ -25,7 +25,7 @@ from torch.utils.data import Dataset
 from .._arrays import to_numpy
 from .._files import atomic_write
 from ..heat import HeatKernel
-from ..mesh import Mesh, load_mesh
+from ..mesh import Mesh, MeshWarning, load_mesh
 from ..meshio import COMPRESSED
 from .cache import (
     _ARRAY_KEYS,
@@ -218,6 +218,7 @@ class ShapeCollection(Dataset):
         self.preprocess = preprocess
         self.cache_dir = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
         self._index = {n: i for i, n in enumerate(self.names)}
+        self._warned: set[tuple[str, str]] = set()  # (file, MeshWarning) already shown
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -341,10 +342,10 @@ class ShapeCollection(Dataset):
         path = self.paths[i]
         data = None
         if self.preprocess is None:
-            mesh = load_mesh(path)
+            mesh = self._load_mesh(path)
         else:
             sha = file_sha256(path)
-            mesh = load_mesh(path)
+            mesh = self._load_mesh(path)
             cpath = self.cache_path(i, sha)
             data = self._load_cache(cpath, sha, mesh)
             if data is None:
@@ -358,6 +359,26 @@ class ShapeCollection(Dataset):
             data=data,
             preprocess=self.preprocess,
         )
+
+    def _load_mesh(self, path: Path) -> Mesh:
+        """:func:`load_mesh`, each :class:`MeshWarning` of a file shown once per collection.
+
+        A shape is read again whenever it is asked for (a whole in many pairs, a dataset
+        iterated twice), and Python's own once-per-place memory does not hold here: every
+        ``catch_warnings`` resets it, the readers' own included. Other warnings pass as they
+        come; warning filters apply as usual (``"error"`` still raises).
+        """
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", MeshWarning)
+            mesh = load_mesh(path)
+        for w in caught:
+            if issubclass(w.category, MeshWarning):
+                key = (str(path), str(w.message))
+                if key in self._warned:
+                    continue
+                self._warned.add(key)
+            warnings.warn(w.message, w.category, stacklevel=3)  # the caller of __getitem__
+        return mesh
 
     # ---------------------------------------------------------------------------------
     def _meta(self, sha: str) -> str:
