@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import pickle
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from torchheat.datasets import (
     tosca_remeshed_5k,
     tosca_remeshed_5k_symmetry,
 )
+from torchheat.mesh import MeshWarning
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SPOT = Path(__file__).resolve().parents[1] / "torchheat" / "data" / "spot.obj"
@@ -494,10 +496,6 @@ def test_folder_lists_compressed_meshes_by_their_inner_name(spot_files, tmp_path
 
 def test_a_files_mesh_warning_is_shown_once_per_collection(tmp_path):
     # a shape is read again on every access (a whole in many pairs): its MeshWarning once
-    import warnings
-
-    from torchheat.mesh import MeshWarning
-
     V = [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]]
     F = [[0, 1, 2], [0, 1, 3], [0, 1, 4]]  # edge (0, 1) in three faces
     path = tmp_path / "fan.off"

@@ -341,11 +341,9 @@ class ShapeCollection(Dataset):
         i = self.index(i)
         path = self.paths[i]
         data = None
-        if self.preprocess is None:
-            mesh = self._load_mesh(path)
-        else:
+        mesh = self._load_mesh(path)
+        if self.preprocess is not None:
             sha = file_sha256(path)
-            mesh = self._load_mesh(path)
             cpath = self.cache_path(i, sha)
             data = self._load_cache(cpath, sha, mesh)
             if data is None:

@@ -264,12 +264,21 @@ class Correspondence:
         """
         if not self.has_symmetric_map:
             raise ValueError("this correspondence has no symmetric map to swap in")
+        def shared(read: Callable[[], torch.Tensor | None]) -> Callable[[], torch.Tensor]:
+            # through this result's property, which computes a deferred map once and keeps it
+            def compute() -> torch.Tensor:
+                out = read()
+                assert out is not None  # (a deferred map returns one)
+                return out
+            return compute
+
         return Correspondence(
-            map=self._sharing("_symmetric_map"),
+            map=(shared(lambda: self.symmetric_map) if callable(self._symmetric_map)
+                 else self._symmetric_map),
             landmarks=list(self.symmetric_landmarks or []),
             candidates=self.candidates,
             scores=self.scores,
-            symmetric_map=self._sharing("_map"),
+            symmetric_map=shared(lambda: self.map) if callable(self._map) else self._map,
             symmetric_landmarks=self.landmarks,
             orientation=orientation,
             info=self.info,
@@ -279,22 +288,6 @@ class Correspondence:
             n_source=self._n_source,
             quality=quality,
         )
-
-    def _sharing(self, field: str) -> torch.Tensor | Callable[[], torch.Tensor] | None:
-        """The map in ``field`` (``"_map"`` or ``"_symmetric_map"``) as given to a result
-        sharing it: a deferred map becomes one computed once for both results."""
-        value = getattr(self, field)
-        if not callable(value):
-            return value
-
-        def compute() -> torch.Tensor:
-            current = getattr(self, field)
-            if callable(current):  # not computed yet: compute and keep it here too
-                current = current()
-                setattr(self, field, current)
-            return current
-
-        return compute
 
     def full_map(self) -> torch.Tensor | None:
         """The direct map in the numbering of the input files.
