@@ -367,6 +367,59 @@ def test_twin_landmark_on_plane_is_off_plane_with_mirror_twin(mirror_pair):
     assert np.linalg.norm(V[p2] - V[mp[p2]]) > 0.2 * diam
 
 
+@pytest.fixture(scope="module")
+def mirror_pair_short_times():
+    """The mirror pair prepared at times up to 0.02: the heat of an end of the shape fades
+    across it (at the default times it is nearly even everywhere)."""
+    V, F = mirror_mesh(3)
+    W, G, perm = moved_copy(V, F, seed=11)
+    times = np.geomspace(1e-3, 0.02, 10).tolist()
+    return (prepare(Mesh(V, F), times=times), prepare(Mesh(W, G), times=times), perm,
+            mirror_permutation(V))
+
+
+def test_near_twin_lies_within_the_landmarks_heat(mirror_pair_short_times):
+    S, _, _, mp = mirror_pair_short_times
+    V = S.mesh.numpy()[0]
+    diam = float(np.linalg.norm(V.max(0) - V.min(0)))
+    p = int(np.argmax(V[:, 0]))  # an end of the shape
+    heat = tm.prepared._descriptor(S, [p], True).double().numpy()[:, S.hk.times.numel() - 1]
+    far = tm.landmarks._twin_landmark(S, p, True, None, diam)
+    near = tm.landmarks._twin_landmark(S, p, True, None, diam, reach=0.1)
+    assert far is not None and near is not None
+    assert heat[far] < 0.1 * heat[p] <= heat[near]  # the far twin is out of reach
+    for twin in (far, near):  # both off the plane: their mirror twins lie far away
+        assert np.linalg.norm(V[twin] - V[mp[twin]]) > 0.2 * diam
+    assert tm.landmarks._twin_landmark(S, p, True, None, diam, reach=1e6) is None
+
+
+def test_a_piece_is_seeded_by_both_twins(mirror_pair_short_times, monkeypatch):
+    from test_zoomout import _default_options
+
+    S, T, perm, mp = mirror_pair_short_times
+    V = S.mesh.numpy()[0]
+    diam = float(np.linalg.norm(V.max(0) - V.min(0)))
+    p = int(np.argmax(V[:, 0]))
+    opt = _default_options()
+    _, cands, _ = tm.landmarks._landmark_search(S, T, p, True, opt.engine, None,
+                                                50, opt.n_candidates)
+    far = tm.landmarks._twin_landmark(S, p, True, None, diam)
+    monkeypatch.setattr(tm.landmarks, "_NEAR_TWIN_REACH", 0.1)
+    near = tm.landmarks._twin_landmark(S, p, True, None, diam, reach=0.1)
+    seeds = tm.landmarks._seed_landmarks(S, T, p, cands, far, True, opt.n_candidates,
+                                         opt.expand_top)
+    # a whole shape: the far twin's seeds only
+    assert tm.landmarks._twin_seeds(S, T, p, cands, far, opt, None) == seeds
+    piece = tm.landmarks._twin_seeds(S, T, p, cands, far,
+                                     dataclasses.replace(opt, partial_ratio=0.5), None)
+    extra = piece[len(seeds):]
+    assert piece[:len(seeds)] == seeds and extra
+    assert all(len(h) == 2 and h[1][0] == near for h in extra)
+    assert len({tuple(h) for h in piece}) == len(piece)  # no hypothesis twice
+    # the right one is among them: p and the near twin at their true images
+    assert [(p, int(perm[p])), (near, int(perm[near]))] in extra
+
+
 def test_fps_cache_is_a_prefix(small_mesh):
     from torchheat.descriptors import farthest_point_sampling
 

@@ -254,7 +254,7 @@ def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | N
 
 
 def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
-                   diam: float) -> int | None:
+                   diam: float, reach: float | None = None) -> int | None:
     """Second source landmark that separates the direct map of ``p`` from its mirror.
 
     If ``p`` lies on (or near) the plane of a mirror-symmetric shape, its one-point map cannot
@@ -265,10 +265,19 @@ def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor
     hypotheses. Detecting whether ``p`` is on the plane is not reliable on real meshes
     (measured: the twin/neighbour descriptor ratios of on-plane and off-plane landmarks
     overlap), so the caller branches on this landmark unconditionally.
+
+    ``reach``: only samples that ``p``'s heat reaches are considered, those whose heat-kernel
+    map at the largest time is at least ``reach`` times ``p``'s own (None: all; under two such
+    samples: None). The *near twin* of a piece (:func:`_twin_seeds`).
     """
     D = _descriptor(src, [p], use_hks).double().cpu().numpy()
     V, _ = src.mesh.numpy()
     r = (_fps(src, 256) if rows is None else rows[:256]).numpy()
+    if reach is not None:
+        last = src.hk.times.numel() - 1  # the landmark's heat at the largest time
+        r = r[D[r, last] >= reach * D[p, last]]
+        if r.size < 2:
+            return None
     k = min(64, src.n)
     dist, idx = _kdtree(D).query(D[r], k=k, p=np.inf)
     dist, idx = np.atleast_2d(dist), np.atleast_2d(idx)
@@ -387,6 +396,37 @@ def _seed_landmarks(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torc
             for lm in _expand(src, tgt, p, q, p2 if i < expand_top else None, use_hks, radius)]
 
 
+_NEAR_TWIN_REACH = 0.01
+
+
+def _twin_seeds(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torch.Tensor,
+                p2: int | None, opt: _Options,
+                rows: torch.Tensor | None) -> list[list[tuple[int, int]]]:
+    """:func:`_seed_landmarks` of ``p`` with its twin ``p2`` and, for a partial match, also
+    with its *near twin*: the twin among the samples ``p``'s heat reaches (at least
+    :data:`_NEAR_TWIN_REACH` of its own heat-kernel map at the largest time; ``rows``: the
+    samples). The near twin's hypotheses follow the far twin's, duplicates dropped.
+
+    A piece's far twin may lie beyond ``p``'s heat at the piece's times: its descriptor is
+    its HKS alone, which the cut distorts, and neither of its images is right (horse_7 of the
+    SHREC'16 cuts: the true image ranks 5907th). A near twin alone breaks pieces whose far
+    twin is what separates the mirror maps (RESULTS.md, thirty-fourth session), so both
+    are seeded and the choice between their maps is the usual one. Measured on the SHREC'16
+    training pieces (RESULTS.md, thirty-fifth session).
+    """
+    hyp = _seed_landmarks(src, tgt, p, ranked, p2, opt.use_hks, opt.n_candidates,
+                          opt.expand_top)
+    if opt.partial_ratio is None or p2 is None or opt.expand_top <= 0:
+        return hyp
+    pn = _twin_landmark(src, p, opt.use_hks, rows, src.mesh.bbox_diagonal(),
+                        reach=_NEAR_TWIN_REACH)
+    if pn is None or pn == p2:
+        return hyp
+    extra = _seed_landmarks(src, tgt, p, ranked, pn, opt.use_hks, opt.n_candidates,
+                            opt.expand_top)
+    return hyp + [h for h in extra if h not in hyp]
+
+
 def _feature_seeds(src: PreparedShape, tgt: PreparedShape, pe: int, opt: _Options,
                    score_rows: torch.Tensor | None, extra_rows: torch.Tensor,
                    trees: _TreeCache | None) -> list[list[tuple[int, int]]]:
@@ -404,8 +444,7 @@ def _feature_seeds(src: PreparedShape, tgt: PreparedShape, pe: int, opt: _Option
                          samples=extra_rows, trees=trees)
     ranked = pool[torch.argsort(sc, stable=True)]
     pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
-    return _seed_landmarks(src, tgt, pe, ranked, pe2, opt.use_hks, opt.n_candidates,
-                           opt.expand_top)
+    return _twin_seeds(src, tgt, pe, ranked, pe2, opt, score_rows)
 
 
 def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
@@ -422,8 +461,7 @@ def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: tor
     """
     if p2 is None and opt.expand_top > 0:
         p2 = _twin_landmark(src, p, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
-    hyp = _seed_landmarks(src, tgt, p, cands, p2, opt.use_hks, opt.n_candidates,
-                          opt.expand_top)
+    hyp = _twin_seeds(src, tgt, p, cands, p2, opt, score_rows)
     if auto_landmark and opt.source_landmarks > 1:
         Vs, _ = src.mesh.numpy()
         feats = src.features.numpy()

@@ -234,7 +234,8 @@ def match(
         (``method="refine"``) The top ``expand_top`` distinct candidates are each split into
         two hypotheses by a second source landmark that separates the direct map from its
         mirror (see ``_twin_landmark``); needed when ``p`` lies on the symmetry plane (the
-        tail tip of a cat, measured: its one-point map then mixes left and right).
+        tail tip of a cat, measured: its one-point map then mixes left and right). With
+        ``partial=True`` they are split by a near twin too (see ``_twin_seeds``).
     source_landmarks : int, optional
         (``method="refine"``, automatic landmark) Number of source landmarks whose
         candidates seed hypotheses: the strongest feature, then features farthest from the
@@ -414,7 +415,9 @@ def match(
     partial : bool
         The source is a piece of the target (a partial or incomplete scan of it, in the same
         units): its time samples are scaled to the target's (one scale for both), landmarks and
-        samples are drawn at least ``partial_margin`` from its boundary, and ZoomOut uses
+        samples are drawn at least ``partial_margin`` from its boundary, each source landmark
+        seeds hypotheses with both its twin landmarks (the far one, and a near one its heat
+        reaches at the piece's times), and ZoomOut uses
         rectangular functional maps (see :mod:`torchheat.matching.partial`). Every source
         vertex gets a target vertex. The target must be the full shape.
     partial_margin : float
