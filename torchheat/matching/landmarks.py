@@ -396,6 +396,9 @@ def _seed_landmarks(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torc
             for lm in _expand(src, tgt, p, q, p2 if i < expand_top else None, use_hks, radius)]
 
 
+# A piece's near twin is drawn among the samples where the landmark's heat-kernel map at the
+# largest time is at least this share of its value at the landmark (thirty-fourth session:
+# horse_7's far twin reads <= 3e-4 of it).
 _NEAR_TWIN_REACH = 0.01
 
 
