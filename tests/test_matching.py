@@ -409,9 +409,9 @@ def test_a_piece_is_seeded_by_both_twins(mirror_pair_short_times, monkeypatch):
     seeds = tm.landmarks._seed_landmarks(S, T, p, cands, far, True, opt.n_candidates,
                                          opt.expand_top)
     # a whole shape: the far twin's seeds only
-    assert tm.landmarks._twin_seeds(S, T, p, cands, far, opt, None) == seeds
-    piece = tm.landmarks._twin_seeds(S, T, p, cands, far,
-                                     dataclasses.replace(opt, partial_ratio=0.5), None)
+    assert tm.landmarks._hypothesis_seeds(S, T, p, cands, far, False, None, opt) == seeds
+    piece = tm.landmarks._hypothesis_seeds(S, T, p, cands, far, False, None,
+                                           dataclasses.replace(opt, partial_ratio=0.5))
     extra = piece[len(seeds):]
     assert piece[:len(seeds)] == seeds and extra
     assert all(len(h) == 2 and h[1][0] == near for h in extra)

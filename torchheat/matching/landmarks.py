@@ -268,25 +268,40 @@ def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor
 
     ``reach``: only samples that ``p``'s heat reaches are considered, those whose heat-kernel
     map at the largest time is at least ``reach`` times ``p``'s own (None: all; under two such
-    samples: None). The *near twin* of a piece (:func:`_twin_seeds`).
+    samples: None). The *near twin* of a piece (:func:`_twin_seeds`). Both twins from one
+    search: :func:`_twins`.
     """
+    far, near = _twins(src, p, use_hks, rows, diam, reach)
+    return far if reach is None else near
+
+
+def _twins(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
+           diam: float, reach: float | None) -> tuple[int | None, int | None]:
+    """The far twin of ``p`` and its near twin within ``reach`` (None when ``reach`` is None)
+    as :func:`_twin_landmark` defines them, from one k-d tree search of the samples (the
+    near twin is the same rule over the samples ``p``'s heat reaches)."""
     D = _descriptor(src, [p], use_hks).double().cpu().numpy()
     V, _ = src.mesh.numpy()
     r = (_fps(src, 256) if rows is None else rows[:256]).numpy()
-    if reach is not None:
-        last = src.hk.times.numel() - 1  # the landmark's heat at the largest time
-        r = r[D[r, last] >= reach * D[p, last]]
-        if r.size < 2:
-            return None
     k = min(64, src.n)
     dist, idx = _kdtree(D).query(D[r], k=k, p=np.inf)
     dist, idx = np.atleast_2d(dist), np.atleast_2d(idx)
     far = np.linalg.norm(V[idx] - V[r][:, None], axis=2) > 0.2 * diam
     has = far.any(axis=1)
-    if not has.any():
-        return None
+    # each sample's twin distance: to its nearest descriptor beyond 0.2 diameters (inf: none)
     dtwin = np.where(has, dist[np.arange(len(r)), np.argmax(far, axis=1)], np.inf)
-    return int(r[int(np.argmin(dtwin))])
+
+    def best(among: np.ndarray) -> int | None:
+        if not (has & among).any():
+            return None
+        return int(r[int(np.argmin(np.where(among, dtwin, np.inf)))])
+
+    near = None
+    if reach is not None:
+        last = src.hk.times.numel() - 1  # the landmark's heat at the largest time
+        reached = D[r, last] >= reach * D[p, last]
+        near = best(reached) if reached.sum() >= 2 else None
+    return best(np.ones(len(r), dtype=bool)), near
 
 
 def _expand(src, tgt, p, q, p2, use_hks, radius, limit=2) -> list[list[tuple[int, int]]]:
@@ -402,13 +417,21 @@ def _seed_landmarks(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torc
 _NEAR_TWIN_REACH = 0.01
 
 
+def _near_reach(opt: _Options) -> float | None:
+    """The near twin's reach (:func:`_twin_seeds`): :data:`_NEAR_TWIN_REACH` for a partial
+    match that splits candidates by twins, None otherwise (no near twin)."""
+    if opt.partial_ratio is None or opt.expand_top <= 0:
+        return None
+    return _NEAR_TWIN_REACH
+
+
 def _twin_seeds(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torch.Tensor,
-                p2: int | None, opt: _Options,
-                rows: torch.Tensor | None) -> list[list[tuple[int, int]]]:
+                p2: int | None, pn: int | None,
+                opt: _Options) -> list[list[tuple[int, int]]]:
     """:func:`_seed_landmarks` of ``p`` with its twin ``p2`` and, for a partial match, also
-    with its *near twin*: the twin among the samples ``p``'s heat reaches (at least
-    :data:`_NEAR_TWIN_REACH` of its own heat-kernel map at the largest time; ``rows``: the
-    samples). The near twin's hypotheses follow the far twin's, duplicates dropped.
+    with its *near twin* ``pn`` (None: none): the twin among the samples ``p``'s heat
+    reaches (:func:`_near_reach`, found with ``p2`` by :func:`_twins`). The near twin's
+    hypotheses follow the far twin's, duplicates dropped; it is used only beside a far twin.
 
     A piece's far twin may lie beyond ``p``'s heat at the piece's times: its descriptor is
     its HKS alone, which the cut distorts, and neither of its images is right (horse_7 of the
@@ -419,11 +442,7 @@ def _twin_seeds(src: PreparedShape, tgt: PreparedShape, p: int, ranked: torch.Te
     """
     hyp = _seed_landmarks(src, tgt, p, ranked, p2, opt.use_hks, opt.n_candidates,
                           opt.expand_top)
-    if opt.partial_ratio is None or p2 is None or opt.expand_top <= 0:
-        return hyp
-    pn = _twin_landmark(src, p, opt.use_hks, rows, src.mesh.bbox_diagonal(),
-                        reach=_NEAR_TWIN_REACH)
-    if pn is None or pn == p2:
+    if p2 is None or pn is None or pn == p2:
         return hyp
     extra = _seed_landmarks(src, tgt, p, ranked, pn, opt.use_hks, opt.n_candidates,
                             opt.expand_top)
@@ -446,8 +465,9 @@ def _feature_seeds(src: PreparedShape, tgt: PreparedShape, pe: int, opt: _Option
     sc = landmark_scores(src, tgt, pe, pool, use_hks=opt.use_hks, engine=opt.engine,
                          samples=extra_rows, trees=trees)
     ranked = pool[torch.argsort(sc, stable=True)]
-    pe2 = _twin_landmark(src, pe, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
-    return _twin_seeds(src, tgt, pe, ranked, pe2, opt, score_rows)
+    pe2, pen = _twins(src, pe, opt.use_hks, score_rows, src.mesh.bbox_diagonal(),
+                      _near_reach(opt))
+    return _twin_seeds(src, tgt, pe, ranked, pe2, pen, opt)
 
 
 def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
@@ -456,15 +476,20 @@ def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: tor
     """Every landmark hypothesis of ``match``'s default pipeline, in seeding order.
 
     Those of the landmark ``p`` (its ranked candidates ``cands``; its twin ``p2``, or one
-    found by :func:`_twin_landmark` when ``opt.expand_top > 0``), then, for an automatic
+    found by :func:`_twin_landmark` when ``opt.expand_top > 0``; for a partial match also
+    its near twin, :func:`_twin_seeds`), then, for an automatic
     landmark, those of ``opt.source_landmarks - 1`` further source features, each the feature
     farthest from the ones already used (:func:`_feature_seeds`, scored on a quarter of the
     score samples: a farthest-point prefix, still spread). ``memo``: the match's memo (its
     k-d trees, and the further features' seeds, shared by the stages of a staged search).
     """
+    reach, diam = _near_reach(opt), src.mesh.bbox_diagonal()
     if p2 is None and opt.expand_top > 0:
-        p2 = _twin_landmark(src, p, opt.use_hks, score_rows, src.mesh.bbox_diagonal())
-    hyp = _twin_seeds(src, tgt, p, cands, p2, opt, score_rows)
+        p2, pn = _twins(src, p, opt.use_hks, score_rows, diam, reach)
+    else:  # the caller's twin (or none): the near twin alone
+        pn = (None if p2 is None or reach is None
+              else _twin_landmark(src, p, opt.use_hks, score_rows, diam, reach=reach))
+    hyp = _twin_seeds(src, tgt, p, cands, p2, pn, opt)
     if auto_landmark and opt.source_landmarks > 1:
         Vs, _ = src.mesh.numpy()
         feats = src.features.numpy()

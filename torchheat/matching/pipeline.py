@@ -418,8 +418,8 @@ def match(
         samples are drawn at least ``partial_margin`` from its boundary, each source landmark
         seeds hypotheses with both its twin landmarks (the far one, and a near one its heat
         reaches at the piece's times), and ZoomOut uses rectangular functional maps (see
-        :mod:`torchheat.matching.partial`). Every source
-        vertex gets a target vertex. The target must be the full shape.
+        :mod:`torchheat.matching.partial`). Every source vertex gets a target vertex. The
+        target must be the full shape.
     partial_margin : float
         (``partial=True``) Distance from the boundary, in units of ``sqrt(area(target))``,
         inside which no landmark or sample is taken.
