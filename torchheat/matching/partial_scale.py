@@ -86,7 +86,7 @@ def _partial_auto(source: Mesh | PreparedShape | CachedShape | Any,
     piece = next((x[2] for x in out if x[1] == "piece"), None)
     score_map = None if piece is None else piece.info["partial"].pop("score_map", None)
     scores = {}
-    if score_map is not None and len(out) == 2:
+    if piece is not None and score_map is not None and len(out) == 2:
         # the filled map weighed on the piece way's own terms: as if it were one more
         # hypothesis of its pool (pipeline._piece_scorer)
         with threads(kw["num_threads"]):
