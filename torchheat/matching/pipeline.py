@@ -30,7 +30,6 @@ from .landmarks import (
 )
 from .nn import WORK_BYTES, _TreeCache
 from .options import _LEAST, _check_numbers, _Options
-from .orientation import _orientation
 from .partial import (
     PARTIAL_MARGIN,
     _agreement,
@@ -431,17 +430,17 @@ def match(
         and the map of the piece's own vertices returned (what suits a scan with holes: closed,
         it is nearly the whole surface). ``"unit"``: the holed piece normalised to unit area
         and matched as a whole shape, holes open (the second way before ``"filled"``).
-        ``"auto"`` (default): piece and filled. The filled way runs first and is kept alone
-        when sure: its closed match chose clearly (score margin >= 0.75, orientation >= 0.6)
-        and its map of the piece reads quality >= 0.3. Otherwise the piece way runs too and
-        the map it scores better is returned: the filled map is scored as one more hypothesis
-        of the piece way's pool (``log(energy) - orientation_weight * orientation - 4 *
-        agreement`` with the landmark-free map; its energy after the refinement every
-        hypothesis gets, its orientation and agreement read on the map itself), or, with
-        ``descriptor_seed=False``, the better partial quality (rectangular functional map
-        defect and orientation; no ground truth). ``info["partial"]`` says which and why
-        (``"scores"``). The filled way is skipped when the closed piece covers less than
-        60 % of the whole's area.
+        ``"auto"`` (default): piece and filled; the map returned maximises its agreement with the
+        landmark-free partial functional map (share of 1000 source points mapped within 0.15
+        sqrt(area) of it) plus half its partial quality (rectangular functional map defect and
+        orientation; no ground truth), or the quality alone with ``descriptor_seed=False``;
+        ``info["partial"]`` says which and why. The filled way runs first and is kept
+        alone when sure: its closed match chose clearly (score margin >= 0.75, orientation
+        >= 0.6) and its map of the piece reads quality >= 0.3. When both ways run, the filled
+        map is also kept without arbitration if less than a third of the piece's area lies
+        0.1 sqrt(area(whole)) or more from its boundary (the arbiter's evidence is read at the
+        piece's scale). The filled way is skipped when the closed piece covers less than 60 %
+        of the whole's area.
     partial_landmarks : {"deepest", "strongest"}
         (``partial=True``, piece scale) Order of the source's interior feature points, the
         first of which is the landmark ``p``: farthest from the boundary first (default), or
@@ -581,7 +580,6 @@ def match(
         samples = None
         zo_diag: list = []
         descr_fmap = None
-        scorer = None
         search = None  # method="refine": which search gave the map
         if method == "paper":
             direct, sym = _paper_maps(src, tgt, p, cands, p2, landmarks, use_hks, engine)
@@ -616,7 +614,6 @@ def match(
             samples = out["samples"]
             zo_diag = out["zo_diag"]
             descr_fmap = out.get("descriptor_fmap")
-            scorer = out.get("piece_scorer")
     for shape in (src, tgt):  # the memo serves one call; do not hold ~64 MB per shape
         with _DESC_LOCK:
             shape._desc_cache.clear()
@@ -664,12 +661,7 @@ def match(
               "partial": None if part is None and unit_ratio is None else {
                   "ratio": part.ratio if part is not None else unit_ratio,
                   "scale": "piece" if part is not None else "unit",
-                  "descriptor_fmap": descr_fmap,
-                  # the chosen hypothesis' score and a scorer of any dense map of the piece
-                  # (_piece_scorer), for partial_scale="auto"; absent without a
-                  # landmark-free map
-                  **({} if scorer is None else {"choice_score": scorer[0],
-                                                "score_map": scorer[1]})}},
+                  "descriptor_fmap": descr_fmap}},
     )
 
 
@@ -867,12 +859,11 @@ def _refine(src: PreparedShape, tgt: PreparedShape, p: int, cands: torch.Tensor,
     direct, sym, zo_diag = _choose(src, tgt, hs, by_energy, mirror, opt, timings, memo,
                                    hypotheses, hyp_images)
     _dense_maps(src, tgt, hs, direct, sym, opt, timings)
-    scorer = _piece_scorer(src, tgt, hs, by_energy, direct, opt)
     orient = direct.orientation if direct.zo_orientation is None else direct.zo_orientation
     timings["dense_map"] = time.perf_counter() - t0
     return {"direct": direct, "sym": sym, "orient": orient, "hypotheses": hypotheses,
             "hyp_images": hyp_images, "samples": hs.samples, "zo_diag": zo_diag,
-            "descriptor_fmap": descr_fmap, "piece_scorer": scorer}
+            "descriptor_fmap": descr_fmap}
 
 
 def _piece_seeds(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, opt: _Options,
@@ -959,8 +950,8 @@ def _choose(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, by_energy: 
             for r in good:
                 r.agree_descr = _agreement(tgt, _known(r.g), _known(descr[0].g))
             direct = min((r for r in good if r is not descr[0]),
-                         key=lambda r: _piece_score(_known(r.energy), _known(r.orientation),
-                                                    _known(r.agree_descr), w))
+                         key=lambda r: logE(r) - w * _known(r.orientation)
+                         - _PARTIAL_AGREE * _known(r.agree_descr))
         else:
             direct = min(good, key=lambda r: logE(r) - w * _known(r.orientation))
         rest = [r for r in good if r is not direct]
@@ -1034,44 +1025,6 @@ def _dense_maps(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses, direct:
     if rival is not None and opt.final_map and opt.partial_ratio is None:
         # the best different whole map (the margin's rival), at the choice's size
         direct.rival_map = _dense_spectral(src, tgt, _known(rival.zo).C, opt.num_threads, timings)
-
-
-def _piece_score(energy: float, orientation: float, agreement: float, w: float) -> float:
-    """A piece's hypothesis score, lower is better: ``log(energy) - w * orientation -
-    _PARTIAL_AGREE * agreement`` (``w``: the orientation weight, 0 without the test)."""
-    return math.log(max(energy, 1e-300)) - w * orientation - _PARTIAL_AGREE * agreement
-
-
-def _piece_scorer(src: PreparedShape, tgt: PreparedShape, hs: _Hypotheses,
-                  pool: list[Hypothesis], direct: Hypothesis, opt: _Options
-                  ) -> tuple[float, Callable[[torch.Tensor], float]] | None:
-    """A piece's choice, made comparable: the chosen hypothesis' score (:func:`_piece_score`)
-    and a function scoring any dense map of the piece (``(n,)`` target vertices) the same
-    way; None when the choice did not read a landmark-free map (not a piece, or no
-    descriptor hypothesis).
-
-    The map's energy is that of its sample images refined as every hypothesis is
-    (``refine_iterations - 1`` rounds of :meth:`._Hypotheses.refined`); its orientation and
-    agreement with the landmark-free map are read on the map itself, as returned. Used by
-    ``partial_scale="auto"`` to weigh the filled way's map against the piece way's on the
-    piece way's own terms (:func:`.partial_scale._partial_auto`). Cost: one hypothesis
-    refinement per map scored (about 0.1 s at 48 samples).
-    """
-    descr = next((r for r in pool if not r.lms0), None)
-    if opt.partial_ratio is None or descr is None or direct.agree_descr is None:
-        return None
-    w = opt.orientation_weight if opt.orientation else 0.0
-    descr_g = _known(descr.g)
-
-    def score(fmap: torch.Tensor) -> float:
-        f = fmap.detach().cpu().to(torch.int64)
-        g0 = f[hs.samples]
-        _, energy, _ = hs.refined(g0, max(opt.refine_iterations - 1, 1))
-        orient = _orientation(src, tgt, hs.tri, lambda i: f[i].numpy())
-        return _piece_score(energy, orient, _agreement(tgt, g0, descr_g), w)
-
-    return _piece_score(_known(direct.energy), _known(direct.orientation),
-                        _known(direct.agree_descr), w), score
 
 
 #: A piece's hypotheses are scored ``log(energy) - orientation_weight * orientation -

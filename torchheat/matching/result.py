@@ -171,12 +171,12 @@ class Correspondence:
     def partial_summary(self) -> dict | None:
         """How a partial match was made (JSON-able): the area ratio, the share of the whole the
         piece covers once its holes are closed (``closed_ratio``), the way kept (``"piece"``,
-        ``"filled"`` or ``"unit"``), why, and each way's score and quality; None for a
+        ``"filled"`` or ``"unit"``), why, and each way's agreement and quality; None for a
         full match."""
         part = self.info.get("partial")
         if not part:
             return None
-        return {k: part[k] for k in ("ratio", "closed_ratio", "scale", "chosen_by", "scores",
+        return {k: part[k] for k in ("ratio", "closed_ratio", "scale", "chosen_by", "agreement",
                                      "quality", "closed_quality") if k in part}
 
     @property
