@@ -385,12 +385,12 @@ def test_near_twin_lies_within_the_landmarks_heat(mirror_pair_short_times):
     p = int(np.argmax(V[:, 0]))  # an end of the shape
     heat = tm.prepared._descriptor(S, [p], True).double().numpy()[:, S.hk.times.numel() - 1]
     far = tm.landmarks._twin_landmark(S, p, True, None, diam)
-    near = tm.landmarks._twin_landmark(S, p, True, None, diam, reach=0.1)
+    near = tm.landmarks._twins(S, p, True, None, diam, 0.1)[1]
     assert far is not None and near is not None
     assert heat[far] < 0.1 * heat[p] <= heat[near]  # the far twin is out of reach
     for twin in (far, near):  # both off the plane: their mirror twins lie far away
         assert np.linalg.norm(V[twin] - V[mp[twin]]) > 0.2 * diam
-    assert tm.landmarks._twin_landmark(S, p, True, None, diam, reach=1e6) is None
+    assert tm.landmarks._twins(S, p, True, None, diam, 1e6)[1] is None
 
 
 def test_a_piece_is_seeded_by_both_twins(mirror_pair_short_times, monkeypatch):
@@ -405,7 +405,7 @@ def test_a_piece_is_seeded_by_both_twins(mirror_pair_short_times, monkeypatch):
                                                 50, opt.n_candidates)
     far = tm.landmarks._twin_landmark(S, p, True, None, diam)
     monkeypatch.setattr(tm.landmarks, "_NEAR_TWIN_REACH", 0.1)
-    near = tm.landmarks._twin_landmark(S, p, True, None, diam, reach=0.1)
+    near = tm.landmarks._twins(S, p, True, None, diam, 0.1)[1]
     seeds = tm.landmarks._seed_landmarks(S, T, p, cands, far, True, opt.n_candidates,
                                          opt.expand_top)
     # a whole shape: the far twin's seeds only

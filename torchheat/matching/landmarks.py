@@ -254,7 +254,7 @@ def _ambiguity(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | N
 
 
 def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
-                   diam: float, reach: float | None = None) -> int | None:
+                   diam: float) -> int | None:
     """Second source landmark that separates the direct map of ``p`` from its mirror.
 
     If ``p`` lies on (or near) the plane of a mirror-symmetric shape, its one-point map cannot
@@ -266,20 +266,18 @@ def _twin_landmark(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor
     (measured: the twin/neighbour descriptor ratios of on-plane and off-plane landmarks
     overlap), so the caller branches on this landmark unconditionally.
 
-    ``reach``: only samples that ``p``'s heat reaches are considered, those whose heat-kernel
-    map at the largest time is at least ``reach`` times ``p``'s own (None: all; under two such
-    samples: None). The *near twin* of a piece (:func:`_twin_seeds`). Both twins from one
-    search: :func:`_twins`.
+    A piece's near twin comes with it from the same search: :func:`_twins`.
     """
-    far, near = _twins(src, p, use_hks, rows, diam, reach)
-    return far if reach is None else near
+    return _twins(src, p, use_hks, rows, diam, None)[0]
 
 
 def _twins(src: PreparedShape, p: int, use_hks: bool, rows: torch.Tensor | None,
            diam: float, reach: float | None) -> tuple[int | None, int | None]:
-    """The far twin of ``p`` and its near twin within ``reach`` (None when ``reach`` is None)
-    as :func:`_twin_landmark` defines them, from one k-d tree search of the samples (the
-    near twin is the same rule over the samples ``p``'s heat reaches)."""
+    """The far twin of ``p`` (:func:`_twin_landmark`) and its *near twin* (a piece's,
+    :func:`_twin_seeds`) from one k-d tree search of the samples: the same rule over only the
+    samples ``p``'s heat reaches, those whose heat-kernel map at the largest time is at least
+    ``reach`` times ``p``'s own (None when ``reach`` is None or fewer than two samples are
+    reached)."""
     D = _descriptor(src, [p], use_hks).double().cpu().numpy()
     V, _ = src.mesh.numpy()
     r = (_fps(src, 256) if rows is None else rows[:256]).numpy()
@@ -488,7 +486,7 @@ def _hypothesis_seeds(src: PreparedShape, tgt: PreparedShape, p: int, cands: tor
         p2, pn = _twins(src, p, opt.use_hks, score_rows, diam, reach)
     else:  # the caller's twin (or none): the near twin alone
         pn = (None if p2 is None or reach is None
-              else _twin_landmark(src, p, opt.use_hks, score_rows, diam, reach=reach))
+              else _twins(src, p, opt.use_hks, score_rows, diam, reach)[1])
     hyp = _twin_seeds(src, tgt, p, cands, p2, pn, opt)
     if auto_landmark and opt.source_landmarks > 1:
         Vs, _ = src.mesh.numpy()
