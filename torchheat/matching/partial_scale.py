@@ -83,12 +83,13 @@ def _partial_auto(source: Mesh | PreparedShape | CachedShape | Any,
             sure = True  # the piece way is not tried
             break
     piece = next((x[2] for x in out if x[1] == "piece"), None)
-    dense_free = None if piece is None else _landmark_free_dense(src, tgt, piece)
     agreement = {}
-    if dense_free is not None:
-        pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))  # where agreements are read
-        # (match refuses final_map=False here: the maps are there)
-        agreement = {x[1]: _agreement(tgt, _known(x[2].map)[pts], dense_free[pts]) for x in out}
+    if piece is not None:  # agreements are read on farthest points of the piece only
+        pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))
+        free = _landmark_free_dense(src, tgt, piece, pts)
+        if free is not None:
+            # (match refuses final_map=False here: the maps are there)
+            agreement = {x[1]: _agreement(tgt, _known(x[2].map)[pts], free) for x in out}
     if sure:
         best = out[0]
         part = best[2].info["partial"]
@@ -201,10 +202,11 @@ _DEEP_LEAST = 1.0 / 3.0
 _DEEP_DISTANCE = 0.1
 
 
-def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspondence
-                         ) -> torch.Tensor | None:
-    """Every source vertex mapped by the landmark-free partial functional map of a
-    piece-scale run (refined by rectangular ZoomOut); None if the run has none.
+def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspondence,
+                         rows: torch.Tensor | None = None) -> torch.Tensor | None:
+    """The source vertices ``rows`` (default: all) mapped by the landmark-free partial
+    functional map of a piece-scale run (refined by rectangular ZoomOut); None if the run has
+    none.
 
     The landmark-free map is coarse but unbiased: it does not depend on a landmark or on the
     scale the piece was matched at, so it can arbitrate between the piece-scale and filled
@@ -213,7 +215,7 @@ def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspon
     """
     part = corr.info.get("partial") or {}
     C = part.get("descriptor_fmap")
-    return None if C is None else dense_partial_map(src, tgt, C)
+    return None if C is None else dense_partial_map(src, tgt, C, rows=rows)
 
 
 def filled_piece(mesh: Mesh) -> Mesh:
