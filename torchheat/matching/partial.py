@@ -718,10 +718,9 @@ def dense_partial_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
     Examples
     --------
     >>> import trimesh, torchheat
-    >>> m = trimesh.creation.icosphere(2)
-    >>> s = torchheat.prepare(torchheat.Mesh(m.vertices, m.faces), k=20)
-    >>> C = torch.eye(20, dtype=torch.float64)
-    >>> dense_partial_map(s, s, C, rows=torch.tensor([5, 7])).tolist()
+    >>> ico = trimesh.creation.icosphere(3)
+    >>> ball = torchheat.prepare(torchheat.Mesh(ico.vertices, ico.faces), k=16)
+    >>> dense_partial_map(ball, ball, torch.eye(16), rows=torch.tensor([5, 7])).tolist()
     [5, 7]
     """
     k_s, k_t = C.shape
