@@ -86,7 +86,7 @@ def _partial_auto(source: Mesh | PreparedShape | CachedShape | Any,
     agreement = {}
     if piece is not None:  # agreements are read on farthest points of the piece only
         pts = _fps(src, min(src.n, _PARTIAL_AUTO_POINTS))
-        free = _landmark_free_dense(src, tgt, piece, pts)
+        free = _landmark_free_images(src, tgt, piece, pts)
         if free is not None:
             # (match refuses final_map=False here: the maps are there)
             agreement = {x[1]: _agreement(tgt, _known(x[2].map)[pts], free) for x in out}
@@ -202,9 +202,9 @@ _DEEP_LEAST = 1.0 / 3.0
 _DEEP_DISTANCE = 0.1
 
 
-def _landmark_free_dense(src: PreparedShape, tgt: PreparedShape, corr: Correspondence,
-                         rows: torch.Tensor | None = None) -> torch.Tensor | None:
-    """The source vertices ``rows`` (default: all) mapped by the landmark-free partial
+def _landmark_free_images(src: PreparedShape, tgt: PreparedShape, corr: Correspondence,
+                          rows: torch.Tensor) -> torch.Tensor | None:
+    """Target images of the source vertices ``rows`` under the landmark-free partial
     functional map of a piece-scale run (refined by rectangular ZoomOut); None if the run has
     none.
 
