@@ -24,6 +24,7 @@ Usage::
 
     python scripts/partial_unseen.py OUT.jsonl victoria0-victoria1,wolf0-wolf1   # fixed pieces
     python scripts/partial_unseen.py OUT.jsonl victoria,wolf --random 10         # random pieces
+    python scripts/partial_unseen.py OUT.jsonl wolf --random 10 --match refine_samples=49
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 import torchheat
 from torchheat import Mesh
@@ -116,6 +118,18 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
                 yield name, pr, kind, piece
 
 
+def match_options(items: list[str]) -> dict:
+    """``--match KEY=VALUE`` items as keyword options of :func:`torchheat.match` (each VALUE
+    read as YAML: ``refine_samples=49`` gives the int 49, ``zoomout=false`` False)."""
+    options = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--match {item!r}: expected KEY=VALUE")
+        options[key.strip()] = yaml.safe_load(value)
+    return options
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out", type=Path)
@@ -125,7 +139,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--points", type=int, default=500,
                     help="piece vertices the errors are read on (0: all)")
+    ap.add_argument("--match", action="append", default=[], metavar="KEY=VALUE",
+                    help="an option of torchheat.match for every piece (repeatable; VALUE is "
+                         "read as YAML, e.g. --match refine_samples=49); write to a new OUT")
     args = ap.parse_args(argv)
+    try:
+        options = match_options(args.match)
+    except ValueError as exc:
+        ap.error(str(exc))
     warnings.filterwarnings("ignore")
     torch.set_num_threads(1)
     pc = tosca_remeshed_5k(pairs="test")
@@ -148,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
             gsym = np.full(n, -1)
             gsym[pr.gt_src.numpy()] = pr.gt_sym_tgt.numpy()
             t0 = time.perf_counter()
-            corr = torchheat.match(P, Mesh(W, G, name=pr.target.name), partial=True)
+            corr = torchheat.match(P, Mesh(W, G, name=pr.target.name), partial=True, **options)
             seconds = time.perf_counter() - t0
             rows = P.vertex_map.numpy()
             ok = np.flatnonzero(gt[rows] >= 0)
@@ -168,6 +189,8 @@ def main(argv: list[str] | None = None) -> None:
                    "mean": float(e.mean()), "flip_acc": float((flip < 0.25).mean()),
                    "quality": float(corr.quality.quality), "suspect": bool(corr.suspect),
                    "scale": corr.info["partial"]["scale"], "seconds": seconds}
+            if options:
+                rec["options"] = options
             print(json.dumps(rec), flush=True)
             out.write(json.dumps(rec) + "\n")
             out.flush()

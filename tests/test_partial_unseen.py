@@ -4,6 +4,7 @@ meshes the matcher takes (the held-out partial check must not test broken pieces
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 from conftest import load_script
 
@@ -58,3 +59,15 @@ def test_fixed_pieces_cut_below_the_height_quantile():
     c = np.quantile(V[:, 1], 0.6)
     assert (V[F[pieces["cut"]], 1] <= c).all() and (V[F[~pieces["cut"]], 1] > c).any(axis=1).all()
     assert 0.5 < pieces["holes"].mean() < 1.0
+
+
+def test_match_options_read_each_value_as_yaml_and_refuse_an_item_without_a_key():
+    pu = _script()
+    got = pu.match_options(["refine_samples=49", "zoomout=false", " partial_scale = piece",
+                            "orientation_weight=2.5"])
+    assert got == {"refine_samples": 49, "zoomout": False, "partial_scale": "piece",
+                   "orientation_weight": 2.5}
+    assert pu.match_options([]) == {}
+    for bad in ("refine_samples", "=3"):
+        with pytest.raises(ValueError, match="expected KEY=VALUE"):
+            pu.match_options([bad])
