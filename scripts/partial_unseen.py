@@ -30,6 +30,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import time
 import warnings
@@ -120,13 +121,22 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
 
 def match_options(items: list[str]) -> dict:
     """``--match KEY=VALUE`` items as keyword options of :func:`torchheat.match` (each VALUE
-    read as YAML: ``refine_samples=49`` gives the int 49, ``zoomout=false`` False)."""
+    read as YAML: ``refine_samples=49`` gives the int 49, ``zoomout=false`` False). A KEY that
+    is not a keyword option of :func:`torchheat.match`, or is ``partial`` (always True here),
+    raises ``ValueError``."""
+    known = {name for name, p in inspect.signature(torchheat.match).parameters.items()
+             if p.kind is inspect.Parameter.KEYWORD_ONLY}
     options = {}
     for item in items:
         key, sep, value = item.partition("=")
-        if not sep or not key.strip():
+        key = key.strip()
+        if not sep or not key:
             raise ValueError(f"--match {item!r}: expected KEY=VALUE")
-        options[key.strip()] = yaml.safe_load(value)
+        if key == "partial":
+            raise ValueError(f"--match {item!r}: the pieces are always matched with partial=True")
+        if key not in known:
+            raise ValueError(f"--match {item!r}: {key!r} is not an option of torchheat.match")
+        options[key] = yaml.safe_load(value)
     return options
 
 
@@ -155,6 +165,10 @@ def main(argv: list[str] | None = None) -> None:
         for line in args.out.read_text().splitlines():
             if line.strip():
                 rec = json.loads(line)
+                if rec.get("options", {}) != options:  # resume only the same run
+                    raise SystemExit(f"{args.out}: its piece {rec['piece']} was matched with "
+                                     f"options {rec.get('options', {})}, not {options}: write "
+                                     "to a new file")
                 done[rec["piece"]] = rec
     solvers: dict[str, GeodesicSolver] = {}
     with open(args.out, "a") as out:

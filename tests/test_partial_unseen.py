@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from conftest import load_script
+from conftest import SHARED, load_script
 
 
 def _script():
@@ -71,3 +71,16 @@ def test_match_options_read_each_value_as_yaml_and_refuse_an_item_without_a_key(
     for bad in ("refine_samples", "=3"):
         with pytest.raises(ValueError, match="expected KEY=VALUE"):
             pu.match_options([bad])
+    with pytest.raises(ValueError, match="'refine_sample' is not an option"):
+        pu.match_options(["refine_sample=49"])
+    with pytest.raises(ValueError, match="always matched with partial=True"):
+        pu.match_options(["partial=false"])
+
+
+@pytest.mark.skipif(not (SHARED / "tosca_remeshed_5k").exists(), reason="shared TOSCA data absent")
+def test_a_file_of_other_options_is_not_resumed(tmp_path):
+    # resuming would mix pieces matched with different options in one file
+    out = tmp_path / "u.jsonl"
+    out.write_text('{"piece": "wolf0-wolf1:cut0", "kind": "cut", "acc": 1.0}\n')
+    with pytest.raises(SystemExit, match="matched with options {}, not {'refine_samples': 49}"):
+        _script().main([str(out), "wolf", "--random", "1", "--match", "refine_samples=49"])
