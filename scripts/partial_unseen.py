@@ -30,7 +30,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import time
 import warnings
@@ -47,6 +46,7 @@ from torchheat import Mesh
 from torchheat.datasets import tosca_remeshed_5k
 from torchheat.descriptors import farthest_point_sampling
 from torchheat.evaluate import GeodesicSolver, geodesic_errors
+from torchheat.matching.pipeline import check_options
 
 
 def kring(F: np.ndarray, seeds: list[int], k: int) -> np.ndarray:
@@ -121,11 +121,10 @@ def _jobs(pc, spec: list[str], n_random: int, seed: int):
 
 def match_options(items: list[str]) -> dict:
     """``--match KEY=VALUE`` items as keyword options of :func:`torchheat.match` (each VALUE
-    read as YAML: ``refine_samples=49`` gives the int 49, ``zoomout=false`` False). A KEY that
-    is not a keyword option of :func:`torchheat.match`, or is ``partial`` (always True here),
-    raises ``ValueError``."""
-    known = {name for name, p in inspect.signature(torchheat.match).parameters.items()
-             if p.kind is inspect.Parameter.KEYWORD_ONLY}
+    read as YAML: ``refine_samples=49`` gives the int 49, ``zoomout=false`` False), checked
+    as a batch config's are (:func:`torchheat.matching.pipeline.check_options`: unknown names,
+    numbers below their least value). ``partial`` is refused: it is always True here. Raises
+    ``ValueError`` (or the check's ``TypeError``)."""
     options = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -134,9 +133,8 @@ def match_options(items: list[str]) -> dict:
             raise ValueError(f"--match {item!r}: expected KEY=VALUE")
         if key == "partial":
             raise ValueError(f"--match {item!r}: the pieces are always matched with partial=True")
-        if key not in known:
-            raise ValueError(f"--match {item!r}: {key!r} is not an option of torchheat.match")
         options[key] = yaml.safe_load(value)
+    check_options(options)
     return options
 
 
@@ -155,7 +153,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     try:
         options = match_options(args.match)
-    except ValueError as exc:
+    except (TypeError, ValueError) as exc:
         ap.error(str(exc))
     warnings.filterwarnings("ignore")
     torch.set_num_threads(1)

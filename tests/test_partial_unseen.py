@@ -71,8 +71,10 @@ def test_match_options_read_each_value_as_yaml_and_refuse_an_item_without_a_key(
     for bad in ("refine_samples", "=3"):
         with pytest.raises(ValueError, match="expected KEY=VALUE"):
             pu.match_options([bad])
-    with pytest.raises(ValueError, match="'refine_sample' is not an option"):
+    with pytest.raises(TypeError, match="'refine_sample' .did you mean 'refine_samples'"):
         pu.match_options(["refine_sample=49"])
+    with pytest.raises(ValueError, match="refine_samples"):  # below its least value
+        pu.match_options(["refine_samples=0"])
     with pytest.raises(ValueError, match="always matched with partial=True"):
         pu.match_options(["partial=false"])
 
