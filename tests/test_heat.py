@@ -98,7 +98,7 @@ def test_truncated_spectrum_alone_is_wrong_at_small_t(small_mesh):
     assert np.all(err <= hk.error_bound.numpy() * (1 + 1e-6) + 1e-12)  # + rounding
 
 
-def test_columns_match_expm_multiply_on_a_larger_mesh():
+def test_columns_match_expm_multiply_and_the_dense_spectrum_on_a_larger_mesh():
     # small times against scipy's expm_multiply; the large ones (where expm_multiply needs
     # t |L| steps: 22 s at t = 2 here) against the full dense spectrum of the symmetric
     # operator A^-1/2 W A^-1/2 (LAPACK eigh, every mode, no truncation)
