@@ -116,11 +116,10 @@ def test_columns_match_expm_multiply_and_the_dense_spectrum_on_a_larger_mesh():
     s = 1 / np.sqrt(a)
     lam, U = scipy.linalg.eigh(s[:, None] * lap.stiffness_scipy.toarray() * s[None, :],
                                driver="evd")
-    for j in (0, 3, 6, 9):
-        if j <= 3:
-            ref = expm_multiply(-times[j] * L, E)
-        else:
-            ref = s[:, None] * (U @ (np.exp(-times[j] * lam)[:, None] * (U[src].T * s[src])))
+    refs = {j: expm_multiply(-times[j] * L, E) for j in (0, 3)}
+    refs |= {j: s[:, None] * (U @ (np.exp(-times[j] * lam)[:, None] * (U[src].T * s[src])))
+             for j in (6, 9)}
+    for j, ref in refs.items():
         for b, p in enumerate(src):
             err = np.linalg.norm(C[b, :, j] - ref[:, b]) / np.linalg.norm(ref[:, b])
             assert err <= 1e-6, (p, times[j], err)
