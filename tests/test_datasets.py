@@ -244,6 +244,18 @@ def test_preprocess_key_is_stable_and_parameter_sensitive():
     assert Preprocess(k=np.int64(7)).k == 7 and type(Preprocess(k=np.int64(7)).k) is int
 
 
+def test_membership_by_name_reads_no_file(spot_files, tmp_path, monkeypatch):
+    calls = CallCounter(monkeypatch)
+    a, b = spot_files
+    ds = ShapeCollection([a, b], names=["one", "two"], preprocess=Preprocess(k=8),
+                         cache_dir=tmp_path / "cache")
+    monkeypatch.setattr(ShapeCollection, "__getitem__",
+                        lambda self, i: pytest.fail("membership loaded a shape"))
+    assert "two" in ds and "one" in ds
+    assert "three" not in ds and 0 not in ds and a.stem not in ds
+    assert calls.n == 0 and not (tmp_path / "cache").exists()
+
+
 def test_cache_hit_parameter_change_and_file_change(spot_files, tmp_path, monkeypatch):
     calls = CallCounter(monkeypatch)
     a, _ = spot_files

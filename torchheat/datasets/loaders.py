@@ -178,7 +178,7 @@ def tosca_remeshed_5k(
         lines = (d / "test_pairs.txt").read_text().splitlines()
         plist = [tuple(ln.split()) for ln in lines if ln.strip()]
         if classes is not None:
-            plist = [p for p in plist if p[0] in shapes._index and p[1] in shapes._index]
+            plist = [p for p in plist if p[0] in shapes and p[1] in shapes]
         idx = [(shapes.index(a), shapes.index(b)) for a, b in plist]
     elif isinstance(pairs, str):
         idx = _within_class_pairs(shapes, pairs)

@@ -223,6 +223,20 @@ class ShapeCollection(Dataset):
     def __len__(self) -> int:
         return len(self.paths)
 
+    def __contains__(self, name: object) -> bool:
+        """Whether the collection holds a shape of that name (no file is read).
+
+        Without it, ``"cat0" in shapes`` fell back to iterating the collection: every shape
+        loaded (and solved, with a preprocess), each compared with the string, and False.
+
+        Examples
+        --------
+        >>> shapes = ShapeCollection(["cat0.off", "cat1.off"])
+        >>> "cat1" in shapes, "dog0" in shapes, 0 in shapes
+        (True, False, False)
+        """
+        return isinstance(name, str) and name in self._index
+
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}({len(self)} shapes, preprocess={self.preprocess}, "
