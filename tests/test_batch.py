@@ -96,7 +96,7 @@ def test_disk_cache_gives_the_same_results(reference, monkeypatch):
     calls = []
     orig = heat.HeatKernel._eigensolve
     monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
-                        lambda self, k: calls.append(k) or orig(self, k))
+                        lambda self, k, **kw: calls.append(k) or orig(self, k, **kw))
     batch.clear_caches()
     second = batch.run(_config(tmp, tmp / "cached2", cache=str(cache), limit=2), progress=False)
     assert calls == []

@@ -426,7 +426,7 @@ def test_match_and_symmetry_take_dataset_shapes_and_pairs(tmp_path, monkeypatch)
     calls = []
     orig = heat.HeatKernel._eigensolve
     monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
-                        lambda self, k: calls.append(k) or orig(self, k))
+                        lambda self, k, **kw: calls.append(k) or orig(self, k, **kw))
     loader = DataLoader(pc, batch_size=1, collate_fn=collate_list)
     (pair,) = next(iter(loader))
     corr = match(pair, method="paper")
@@ -457,7 +457,7 @@ def test_cached_eigenpairs_beyond_k_serve_fine_maps(tmp_path, monkeypatch):
     calls = []
     orig = heat.HeatKernel._eigensolve
     monkeypatch.setattr(heat.HeatKernel, "_eigensolve",
-                        lambda self, k: calls.append(k) or orig(self, k))
+                        lambda self, k, **kw: calls.append(k) or orig(self, k, **kw))
     S, T = prepare(shapes[0], k=30), prepare(shapes[1], k=30)
     assert S.hk.k == 30 and S.caches.basis.shape == (S.n, 40)
     assert torch.equal(S.caches.basis, shapes[0].data["eigenvectors"].double())

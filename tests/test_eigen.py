@@ -76,6 +76,11 @@ def test_workers_solve_one_mesh_at_two_sizes():
     assert np.allclose(small[0], lam[:10], rtol=1e-10, atol=1e-9)
     with pytest.raises(ValueError, match="2 meshes"):
         EigenWorkers([(V, F), (V, F)], k=[10, 25, 30], processes=0)
+    # one worker for both: the larger basis extends the smaller one, which it keeps as is
+    with EigenWorkers([(V, F), (V, F)], k=[10, 25], processes=1) as bg:
+        small, large = bg.get(0), bg.get(1)
+    assert np.array_equal(large[0][:10], small[0]) and np.array_equal(large[1][:, :10], small[1])
+    assert np.allclose(large[0], lam, rtol=1e-10, atol=1e-9)
 
 
 @linux
@@ -118,7 +123,8 @@ def test_worker_solves_on_while_its_results_wait_to_be_read(monkeypatch):
     monkeypatch.setattr(threadpoolctl, "threadpool_limits", lambda n: None)  # not this process
     solved: list[int] = []
     monkeypatch.setattr(eigen, "cotan_eigenpairs",
-                        lambda V, F, k: (solved.append(len(V)) or (np.zeros(k), V[:, :1])))
+                        lambda V, F, k, known=None: (solved.append(len(V))
+                                                     or (np.zeros(k), V[:, :1])))
     release, sent, closed = threading.Event(), [], []
 
     class Conn:  # the parent not reading yet: every send blocks until released
@@ -153,7 +159,7 @@ def test_worker_solves_on_while_its_results_wait_to_be_read(monkeypatch):
         def close(self):
             closed.append("gone")
 
-    def solve(V, F, k):
+    def solve(V, F, k, known=None):
         solved.append(len(V))
         if len(solved) == 2:  # the first result's send has failed meanwhile
             assert attempted.wait(30)
@@ -222,6 +228,39 @@ def test_multiple_eigenvalues_are_all_found(k):
     lam, phi = eigenpairs(W, A, k)
     assert np.allclose(lam, exact[:k], rtol=1e-9, atol=1e-8)
     assert np.allclose(phi.T @ (A @ phi), np.eye(k), atol=1e-8)
+
+
+@pytest.mark.parametrize("k0, k", [(30, 60), (27, 100)])
+def test_extension_of_known_eigenpairs_finds_the_analytic_spectrum(k0, k):
+    # the flat torus (multiplicity 8): the known pairs kept as given, the next ones solved
+    # with them projected out, every copy of a multiplet split by k0 found
+    W, A, exact = _periodic_grid(20)
+    lam0, phi0 = eigenpairs(W, A, k0)
+    lam, phi = eigenpairs(W, A, k, known=(lam0, phi0))
+    assert np.array_equal(lam[:k0], lam0) and np.array_equal(phi[:, :k0], phi0)
+    assert np.allclose(lam, exact[:k], rtol=1e-9, atol=1e-8)
+    assert np.allclose(phi.T @ (A @ phi), np.eye(k), atol=1e-8)
+    R = W @ phi - (A @ phi) * lam
+    assert np.abs(R).max() <= 1e-8 * lam[-1] * np.abs(A @ phi).max()
+
+
+def test_extension_equals_the_full_solve_and_falls_back_when_the_known_are_not_lowest(
+        monkeypatch):
+    V, F = generic_sphere(4, seed=3)  # 2562 vertices: the ARPACK path
+    W, A = laplacian(Mesh(V, F)).reduced()
+    lam_full, phi_full = eigenpairs(W, A, 60)
+    lam0, phi0 = eigenpairs(W, A, 25)
+    calls = []
+    monkeypatch.setattr(eigen, "_lumped", lambda *a: calls.append(a) or None)
+    lam, phi = eigenpairs(W, A, 60, known=(lam0, phi0))  # no full solve asked for
+    assert not calls
+    assert np.allclose(lam, lam_full, rtol=1e-12, atol=0)
+    assert _same_up_to_sign(phi, phi_full, 1e-7)
+    monkeypatch.undo()
+    # pairs 2..25 are no lowest set: the extension finds the first two below them, and the
+    # full solve answers instead
+    lam2, phi2 = eigenpairs(W, A, 60, known=(lam0[2:], phi0[:, 2:]))
+    assert np.array_equal(lam2, lam_full) and np.array_equal(phi2, phi_full)
 
 
 def _reference(W, A, k):

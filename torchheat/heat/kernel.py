@@ -329,10 +329,11 @@ class HeatKernel:
         self._plan.timings.update(timings)
 
     # ---------------------------------------------------------------------------------
-    def _eigensolve(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def _eigensolve(self, k: int, known: tuple[np.ndarray, np.ndarray] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
         W, A = self.laplacian.reduced()
         try:
-            return eigenpairs(W, A, k)
+            return eigenpairs(W, A, k, known=known)
         except EigensolverError as exc:  # name the mesh: the CLI prints this one line
             name = getattr(self.mesh, "name", None)
             if name is None:
@@ -496,8 +497,10 @@ class HeatKernel:
         stay those of its own ``k``).
 
         Cost: free for ``k <= self.k``; otherwise one sparse eigensolve (shift-invert Lanczos,
-        :func:`torchheat.eigen.eigenpairs`), about 0.85 s for ``k = 200`` on 5k vertices (one
-        thread), twice the default ``k = 100``. Accuracy: as :attr:`eigenvectors`.
+        :func:`torchheat.eigen.eigenpairs`) of the pairs beyond the held ones, which it keeps
+        as they are and projects out (its ``known``; a lumped mass): about 1.0 s for
+        ``k = 200`` on 5k vertices (one thread) against 1.1 s for all 200 (BENCHMARKS.md).
+        Accuracy: as :attr:`eigenvectors`.
 
         Parameters
         ----------
@@ -524,7 +527,7 @@ class HeatKernel:
         k = int(max(1, min(int(k), self._idx.size)))
         if k <= self._lam.size:
             return torch.from_numpy(self._lam[:k].copy()), self.eigenvectors[:, :k]
-        lam, phi_red = self._eigensolve(k)
+        lam, phi_red = self._eigensolve(k, known=(self._lam, self._phi_red))
         return (torch.from_numpy(np.asarray(lam, dtype=np.float64)),
                 self._on_all_vertices(phi_red))
 
