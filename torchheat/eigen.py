@@ -305,6 +305,24 @@ def _finite(lam: np.ndarray, phi: np.ndarray, failures: list[str],
     return None
 
 
+def _symmetric_form(W: sp.csr_matrix, A: sp.csr_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``S = A^-1/2 W A^-1/2`` of a lumped (diagonal) mass, and ``A^-1/2``'s diagonal: the
+    eigenvectors ``psi`` of ``S`` are ``A^1/2 phi``."""
+    isq = 1.0 / np.sqrt(A.diagonal())
+    D = sp.diags(isq)
+    return (D @ W @ D).tocsc(), isq
+
+
+def _shifted_lu(S: sp.csc_matrix, shift: float) -> Any:
+    """Sparse LU of ``S + shift I`` (``RuntimeError`` if singular). It is symmetric positive
+    definite: a symmetric fill-reducing ordering with diagonal pivots (40 % less fill than the
+    default column ordering, 25 % faster eigensolves on SCAPE's 12.5k vertices; eigenpairs
+    equal to 4e-12)."""
+    return sla.splu((S + shift * sp.eye(S.shape[0], format="csc")).tocsc(),
+                    permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                    options={"SymmetricMode": True})
+
+
 def _lumped(W: sp.csr_matrix, A: sp.csr_matrix, k: int,
             failures: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
     """Lumped mass: ARPACK on the symmetric form, with fallbacks; None if all failed."""
@@ -312,19 +330,11 @@ def _lumped(W: sp.csr_matrix, A: sp.csr_matrix, k: int,
     # positive definite), one sparse LU, and phi = A^-1/2 psi. Same eigenpairs as the
     # generalized problem to rounding, and ~20 % faster: no mass products inside ARPACK.
     m = W.shape[0]
-    isq = 1.0 / np.sqrt(A.diagonal())
-    D = sp.diags(isq)
-    S = (D @ W @ D).tocsc()
+    S, isq = _symmetric_form(W, A)
     lu = None
     for shift in _SHIFTS:
         try:
-            # S + shift I is symmetric positive definite: a symmetric fill-reducing
-            # ordering with diagonal pivots (40 % less fill than the default column
-            # ordering, 25 % faster eigensolves on SCAPE's 12.5k vertices; eigenpairs equal
-            # to 4e-12)
-            lu = sla.splu((S + shift * sp.eye(m, format="csc")).tocsc(),
-                          permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
+            lu = _shifted_lu(S, shift)
             break
         except RuntimeError as exc:  # "Factor is exactly singular"
             failures.append(f"LU of S + {shift} I: {exc}")
@@ -383,14 +393,11 @@ def _extend(W: sp.csr_matrix, A: sp.csr_matrix, lam0: np.ndarray, phi0: np.ndarr
     m, k0 = phi0.shape
     if phi0.shape[0] != W.shape[0] or lam0.shape != (k0,) or k - k0 > m - k0 - 2:
         return None
-    isq = 1.0 / np.sqrt(A.diagonal())
-    psi0 = phi0 / isq[:, None]  # orthonormal eigenvectors of S = A^-1/2 W A^-1/2
-    S = (sp.diags(isq) @ W @ sp.diags(isq)).tocsc()
+    S, isq = _symmetric_form(W, A)
+    psi0 = phi0 / isq[:, None]  # orthonormal eigenvectors of S
     shift = _SHIFTS[0]
     try:
-        lu = sla.splu((S + shift * sp.eye(m, format="csc")).tocsc(),
-                      permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options={"SymmetricMode": True})
+        lu = _shifted_lu(S, shift)
     except RuntimeError as exc:
         failures.append(f"LU of S + {shift} I (extension): {exc}")
         return None
