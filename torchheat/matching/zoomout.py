@@ -323,11 +323,11 @@ def fine_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor, k: int,
 
     Notes
     -----
-    Cost beyond the two eigensolves: ``sum_k O(s m k)`` for ``s = FINE_ROWS_PER_MODE * k`` rows
-    and the final exact ``n x m`` search in ``k`` dimensions (float32, certified:
-    :func:`~.nn._argmin_certified`): about 0.6 s for 100 -> 200 modes at 5k vertices, 2.4 s
-    at 12.5k (one thread); the 200-mode eigensolves about 0.55 s per 5k shape, 1.6 s per 12.5k
-    (``scripts/bench.py fine``, BENCHMARKS.md).
+    Cost beyond the two eigensolves (each solves only the modes beyond the heat kernel's, which
+    it keeps: :func:`torchheat.eigen.eigenpairs`' ``known``): ``sum_k O(s m k)`` for
+    ``s = FINE_ROWS_PER_MODE * k`` rows and the final exact ``n x m`` search in ``k``
+    dimensions (float32, certified: :func:`~.nn._argmin_certified`). Timings of both parts:
+    ``scripts/bench.py fine``, BENCHMARKS.md.
 
     Examples
     --------
