@@ -261,6 +261,10 @@ def test_extension_equals_the_full_solve_and_falls_back_when_the_known_are_not_l
     # full solve answers instead
     lam2, phi2 = eigenpairs(W, A, 60, known=(lam0[2:], phi0[:, 2:]))
     assert np.array_equal(lam2, lam_full) and np.array_equal(phi2, phi_full)
+    # pairs of another problem (too few rows, a flat array) are not used either
+    for bad in ((lam0, phi0[:100]), (lam0, lam0)):
+        lam3, phi3 = eigenpairs(W, A, 60, known=bad)
+        assert np.array_equal(lam3, lam_full) and np.array_equal(phi3, phi_full)
 
 
 def _reference(W, A, k):

@@ -390,9 +390,9 @@ def _extend(W: sp.csr_matrix, A: sp.csr_matrix, lam0: np.ndarray, phi0: np.ndarr
     completion as :func:`_lumped`, a Lanczos basis for ``k - k0`` vectors instead of ``k``).
     None (solve all again) when a step fails or a new eigenvalue lies below the known ones
     by more than ``1e-8`` of them: the known set was not the lowest."""
+    if phi0.ndim != 2 or phi0.shape != (W.shape[0], lam0.size) or lam0.ndim != 1:
+        return None  # not pairs of this problem: solve all
     m, k0 = phi0.shape
-    if phi0.shape[0] != W.shape[0] or lam0.shape != (k0,) or k - k0 > m - k0 - 2:
-        return None
     S, isq = _symmetric_form(W, A)
     psi0 = phi0 / isq[:, None]  # orthonormal eigenvectors of S
     shift = _SHIFTS[0]
