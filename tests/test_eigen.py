@@ -81,6 +81,19 @@ def test_workers_solve_one_mesh_at_two_sizes():
         small, large = bg.get(0), bg.get(1)
     assert np.array_equal(large[0][:10], small[0]) and np.array_equal(large[1][:, :10], small[1])
     assert np.allclose(large[0], lam, rtol=1e-10, atol=1e-9)
+    # a third, middle size after the large one: the small basis is still held and lent to it
+    with EigenWorkers([(V, F)] * 3, k=[10, 25, 15], processes=1) as bg:
+        small, mid = bg.get(0), bg.get(2)
+    assert np.array_equal(mid[1][:, :10], small[1])
+    assert np.allclose(mid[0], lam[:15], rtol=1e-10, atol=1e-9)
+
+
+def test_lenders_hold_a_basis_only_for_a_larger_solve_of_its_mesh():
+    # which earlier job lends its pairs to which later one; a basis nobody extends is not held
+    a, b = generic_sphere(2, seed=1), generic_sphere(2, seed=2)
+    jobs = [(0, *a, 10), (1, *b, 10), (2, *a, 25), (3, *a, 15), (4, *b, 5), (5, *b, 30)]
+    assert eigen._lenders(jobs) == {2: 0, 3: 0, 5: 4}
+    assert eigen._lenders([(0, *a, 10), (1, *b, 20)]) == {}
 
 
 @linux

@@ -531,6 +531,18 @@ def _available_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def _lenders(jobs: Sequence[tuple[int, np.ndarray, np.ndarray, int]]) -> dict[int, int]:
+    """For each job, the latest earlier job of the same mesh with fewer pairs (job -> lender)."""
+    out: dict[int, int] = {}
+    for j, (_, V, F, k) in enumerate(jobs):
+        for j0 in range(j - 1, -1, -1):
+            _, V0, F0, k0 = jobs[j0]
+            if k0 < k and np.array_equal(V0, V) and np.array_equal(F0, F):
+                out[j] = j0
+                break
+    return out
+
+
 def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray, int]],
                     nice: int = 0) -> None:
     # one BLAS thread: the other core runs the parent (or another worker); two OpenBLAS
@@ -560,20 +572,25 @@ def _solve_in_child(conn: Any, jobs: list[tuple[int, np.ndarray, np.ndarray, int
     sender = threading.Thread(target=send_all, daemon=True, name="torchheat-eigen-send")
     sender.start()
     # a mesh this worker solved before (the command line's --fine: the default basis, then a
-    # larger one of the same mesh) lends its pairs: only the rest are solved
-    solved: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-    for i, V, F, k in jobs:
+    # larger one of the same mesh) lends its pairs: only the rest are solved. A result is held
+    # only while a later job of this worker is the same mesh with more pairs, so a long job
+    # list does not keep every basis it solved
+    lender = _lenders(jobs)
+    last_use = {j0: j for j, j0 in lender.items()}  # ascending j: the last one stays
+    held: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for j, (i, V, F, k) in enumerate(jobs):
         if gone.is_set():
             break
         try:
-            known = next(((lam0, phi0) for V0, F0, lam0, phi0 in solved
-                          if lam0.size < k and np.array_equal(V0, V)
-                          and np.array_equal(F0, F)), None)
+            known = held.get(lender.get(j, -1))
             lam, phi = cotan_eigenpairs(V, F, k, known=known)
-            solved.append((V, F, lam, phi))
+            if j in last_use:
+                held[j] = (lam, phi)
             outbox.put((i, "ok", lam, phi))
         except BaseException as exc:  # report, the parent solves it itself
             outbox.put((i, "error", repr(exc), None))
+        for j0 in [j0 for j0 in held if last_use[j0] <= j]:
+            del held[j0]
     outbox.put(None)
     sender.join()
     conn.close()
