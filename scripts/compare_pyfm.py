@@ -3,7 +3,9 @@
 
     python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape] [--points 300]
                                    [--process [--runs N]] [--fine K]
-                                   [--out out/compare_pyfm.json]
+                                   [--out out/compare_pyfm.json] [--shard I/N]
+                                   [--records R.jsonl]
+    python scripts/compare_pyfm.py --summarize R1.jsonl [R2.jsonl ...]
 
 pyFM (``pip install pyfmaps``; an optional dependency of this script only, never imported by
 the package) runs the pipeline of its README (v1.3.1): ``TriMesh.load(path, area_normalize=
@@ -32,6 +34,12 @@ Sets: ``tosca12`` = two test pairs per class (the first two of each class in tes
 16 pairs; the name is that of the issue's 12-pair measurement), ``scape6`` = SCAPE pairs
 (0,1), (4,6), (8,9), (3,13), (5,15), (10,19); ``tosca`` = all 284 test pairs, ``scape`` =
 the 40 pairs of configs/scape.yaml.
+
+Long sets (all 284 TOSCA pairs: about 10 s per pair here for both tools and the evaluation)
+run in shards side by side, one process per core: ``--shard I/N`` takes pairs ``I, I + N,
+...``; ``--records R.jsonl`` appends each pair's record as it is done (one line, flushed) and,
+run again, skips the pairs already there (resume). ``--summarize`` prints the summary of one
+or more record files (the shards together).
 """
 
 from __future__ import annotations
@@ -173,9 +181,20 @@ def main(argv: list[str]) -> None:
 
     torch.set_num_threads(1)
     name, points, proc, outf, fine, runs = "tosca12", 300, False, None, None, 1
+    shard, nshards, records = 0, 1, None
+    if argv[:1] == ["--summarize"]:
+        summarize([json.loads(line) for f in argv[1:] for line in Path(f).read_text().splitlines()
+                   if line.strip()])
+        return
     it = iter(argv)
     for a in it:
-        if a == "--set":
+        if a == "--shard":
+            shard, nshards = (int(v) for v in next(it).split("/"))
+            if not 0 <= shard < nshards:
+                raise SystemExit(f"--shard {shard}/{nshards}: I must be in 0 .. N-1")
+        elif a == "--records":
+            records = Path(next(it))
+        elif a == "--set":
             name = next(it)
         elif a == "--points":
             points = int(next(it))
@@ -190,10 +209,16 @@ def main(argv: list[str]) -> None:
         else:
             raise SystemExit(__doc__)
     pc = pairs_of(name)
-    res = []
+    res: list[dict] = []
+    done: set[str] = set()
+    if records is not None and records.exists():  # resume: the pairs already recorded
+        res = [json.loads(line) for line in records.read_text().splitlines() if line.strip()]
+        done = {r["name"] for r in res}
     print(f"load average at start: {os.getloadavg()}", flush=True)
-    for i in range(len(pc)):
+    for i in range(shard, len(pc), nshards):
         pr = pc[i]
+        if pr.name in done:
+            continue
         S, T = pr.source.mesh, pr.target.mesh
         gs, gt = pr.gt_src.numpy(), pr.gt_tgt.numpy()
         sel = rows(len(gs), points)
@@ -219,11 +244,24 @@ def main(argv: list[str]) -> None:
             rec.update(process_times(_path(pr.source), _path(pr.target),
                                      Path(outf or "out/compare_pyfm.json").parent, fine, runs))
         res.append(rec)
+        if records is not None:
+            records.parent.mkdir(parents=True, exist_ok=True)
+            with records.open("a") as fh:  # one whole line per pair: a cut run loses one
+                fh.write(json.dumps(rec) + "\n")
         print(f"{pr.name:22s} torchheat {rec['torchheat']['direct']['under_0.25']:.3f} "
               f"({rec['torchheat']['direct']['mean']:.4f}, {rec['torchheat_s']:.2f} s)  "
               f"pyFM {rec['pyfm']['direct']['under_0.25']:.3f} "
               f"({rec['pyfm']['direct']['mean']:.4f}, {rec['pyfm_s']:.2f} s)", flush=True)
     print(f"load average at end: {os.getloadavg()}")
+    summarize(res, runs)
+    if outf:
+        Path(outf).parent.mkdir(parents=True, exist_ok=True)
+        Path(outf).write_text(json.dumps(res, indent=1))
+
+
+def summarize(res: list[dict], runs: int = 1) -> None:
+    """Print both tools' direct, flip-aware and consistent-row figures over the records."""
+    print(f"{len(res)} pairs")
     for tool in ("torchheat", "pyfm"):
         for kind in ("direct", "flip", "consistent"):
             vals = [r[tool][kind] for r in res if r[tool][kind] is not None]
@@ -234,16 +272,27 @@ def main(argv: list[str]) -> None:
                       f"{100 * np.mean([v['under_0.05'] for v in vals]):.1f}  min "
                       f"{100 * min(v['under_0.25'] for v in vals):.1f}")
         print(f"{tool:9s} time per pair (in process) "
-              f"{np.mean([r[tool + '_s'] for r in res]):.2f} s")
+              f"{np.mean([r[tool + '_s'] for r in res]):.2f} s; pairs under 90 %: "
+              f"{sum(r[tool]['direct']['under_0.25'] < 0.9 for r in res)}")
+    # by class, and head to head on the pairs both tools get right (>= 99 % under 0.25)
+    for cls in sorted({r["cls"] for r in res}):
+        rc = [r for r in res if r["cls"] == cls]
+        print(f"  {cls:9s} n={len(rc):3d} " + "  ".join(
+            f"{tool} {100 * np.mean([r[tool]['direct']['under_0.25'] for r in rc]):5.1f} % "
+            f"{np.mean([r[tool]['direct']['mean'] for r in rc]):.4f}"
+            for tool in ("torchheat", "pyfm")))
+    both = [r for r in res if min(r[t]["direct"]["under_0.25"] for t in ("torchheat", "pyfm"))
+            >= 0.99]
+    if both:
+        th, pf = (np.array([r[t]["direct"]["mean"] for r in both]) for t in ("torchheat", "pyfm"))
+        print(f"both right (>= 99 %): {len(both)} pairs, mean eps torchheat {th.mean():.4f}, "
+              f"pyFM {pf.mean():.4f}; torchheat finer on {int((th < pf).sum())}")
     if res and "pyfm_process_s" in res[0]:
         r0 = res[0]
         print(f"whole process, first pair (median of {runs}): one thread: torchheat "
               f"{r0['torchheat_process_s']:.2f} s, pyFM {r0['pyfm_process_s']:.2f} s; defaults: "
               f"torchheat {r0['torchheat_process_default_s']:.2f} s, pyFM "
               f"{r0['pyfm_process_default_s']:.2f} s")
-    if outf:
-        Path(outf).parent.mkdir(parents=True, exist_ok=True)
-        Path(outf).write_text(json.dumps(res, indent=1))
 
 
 if __name__ == "__main__":
