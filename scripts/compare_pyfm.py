@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """torchheat against pyFM's README pipeline, side by side on the same pairs and metric.
 
-    python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape] [--points 300]
+    python scripts/compare_pyfm.py [--set tosca12|scape6|tosca|scape|CONFIG.yaml] [--points 300]
                                    [--process [--runs N]] [--fine K]
                                    [--out out/compare_pyfm.json] [--shard I/N]
                                    [--records R.jsonl]
@@ -30,7 +30,8 @@ CLI against a ``python -c`` running pyFM's pipeline), back to back, ``--runs N``
 alternating (medians): with one thread each, and with each tool's defaults (thread variables
 unset, all cores).
 
-Sets: ``tosca12`` = two test pairs per class (the first two of each class in test_pairs.txt:
+Sets: a batch config's path (its dataset and pairs, e.g. ``configs/scape50.yaml``),
+``tosca12`` = two test pairs per class (the first two of each class in test_pairs.txt:
 16 pairs; the name is that of the issue's 12-pair measurement), ``scape6`` = SCAPE pairs
 (0,1), (4,6), (8,9), (3,13), (5,15), (10,19); ``tosca`` = all 284 test pairs, ``scape`` =
 the 40 pairs of configs/scape.yaml.
@@ -121,6 +122,13 @@ def _summary(e: np.ndarray | None) -> dict | None:
 def pairs_of(name: str):
     from torchheat import datasets
 
+    if name.endswith((".yaml", ".yml")):  # a batch config's dataset and pairs (its match
+        # options are not used: both tools run their defaults)
+        from torchheat.batch.caches import _load_dataset
+        from torchheat.batch.config import load_config
+
+        cfg = load_config(name)
+        return _load_dataset(cfg["dataset"], cfg["dataset_args"])
     if name == "scape6":
         return datasets.scape(pairs=SCAPE6)
     if name == "scape":
