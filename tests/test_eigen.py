@@ -91,8 +91,10 @@ def test_workers_solve_one_mesh_at_two_sizes():
 def test_lenders_hold_a_basis_only_for_a_larger_solve_of_its_mesh():
     # which earlier job lends its pairs to which later one; a basis nobody extends is not held
     a, b = generic_sphere(2, seed=1), generic_sphere(2, seed=2)
-    jobs = [(0, *a, 10), (1, *b, 10), (2, *a, 25), (3, *a, 15), (4, *b, 5), (5, *b, 30)]
-    assert eigen._lenders(jobs) == {2: 0, 3: 0, 5: 4}
+    jobs = [(0, *a, 10), (1, *b, 10), (2, *a, 25), (3, *a, 15), (4, *b, 5), (5, *b, 30),
+            (6, *a, 40)]
+    # b30 extends b10, not the later b5; a40 extends a25 (the most pairs below its own)
+    assert eigen._lenders(jobs) == {2: 0, 3: 0, 5: 1, 6: 2}
     assert eigen._lenders([(0, *a, 10), (1, *b, 20)]) == {}
 
 

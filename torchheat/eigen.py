@@ -532,14 +532,18 @@ def _available_cpus() -> int:
 
 
 def _lenders(jobs: Sequence[tuple[int, np.ndarray, np.ndarray, int]]) -> dict[int, int]:
-    """For each job, the latest earlier job of the same mesh with fewer pairs (job -> lender)."""
+    """For each job, the earlier job of the same mesh with the most pairs below its own (the
+    latest of equals): job -> lender; jobs with none are left out."""
     out: dict[int, int] = {}
     for j, (_, V, F, k) in enumerate(jobs):
-        for j0 in range(j - 1, -1, -1):
+        best = -1
+        for j0 in range(j):
             _, V0, F0, k0 = jobs[j0]
-            if k0 < k and np.array_equal(V0, V) and np.array_equal(F0, F):
-                out[j] = j0
-                break
+            if (k0 < k and (best < 0 or k0 >= jobs[best][3]) and np.array_equal(V0, V)
+                    and np.array_equal(F0, F)):
+                best = j0
+        if best >= 0:
+            out[j] = best
     return out
 
 
