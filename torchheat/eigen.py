@@ -195,10 +195,9 @@ def eigenpairs(W: sp.spmatrix, A: sp.spmatrix, k: int,
         The first ``k0 < k`` eigenpairs of the same problem, solved before (a larger basis
         for ``match(fine_k=K)``). On the sparse path with a lumped mass they are kept as given,
         and only the ``k - k0`` next ones are solved, with the known vectors deflated
-        (:func:`_extend`; 100 -> 200 on TOSCA 5k shapes, one BLAS thread: 0.96 s against
-        1.12 s for all 200, medians of 7 alternated runs). Otherwise (a
-        problem small enough for the dense solve, a consistent mass), or if a new eigenvalue
-        lies below the known ones, all ``k`` are solved again.
+        (:func:`_extend`; cheaper than solving all ``k``: ``scripts/bench.py fine``,
+        BENCHMARKS.md). Otherwise (a problem small enough for the dense solve, a consistent
+        mass), or if a new eigenvalue lies below the known ones, all ``k`` are solved again.
 
     Returns
     -------
@@ -350,17 +349,9 @@ def _lumped(W: sp.csr_matrix, A: sp.csr_matrix, k: int,
          np.random.default_rng(0).standard_normal(m), min(m, 2 * k + 1)),
     )
     for what, v0, ncv in attempts:
-        try:
-            mu, psi = sla.eigsh(op, k=k, which="LM", v0=v0, tol=ARPACK_TOL, ncv=ncv)
-        except (sla.ArpackError, RuntimeError) as exc:  # ArpackNoConvergence included
-            failures.append(f"{what}: {exc}")
-            continue
-        if _finite(mu, psi, failures, what) is None:
-            continue
-        mu, psi = _complete(op, mu, psi)
-        lam = 1.0 / mu - shift
-        order = np.argsort(lam)
-        return lam[order], psi[:, order] * isq[:, None]
+        found = _shift_invert_arpack(op, k, v0, ncv, shift, what, failures)
+        if found is not None:
+            return found[0], found[1] * isq[:, None]
     # LOBPCG preconditioned with the factorisation (block inverse iteration, accelerated)
     try:
         x0 = np.random.default_rng(1).standard_normal((m, k))
@@ -414,24 +405,38 @@ def _extend(W: sp.csr_matrix, A: sp.csr_matrix, lam0: np.ndarray, phi0: np.ndarr
     # one BLAS thread: each of the thousands of matrix-vector products projects twice
     # against k0 vectors, products too small to split (two threads: 4x slower on TOSCA 5k)
     with threadpool_limits(1, user_api="blas"):
-        try:
-            mu, psi = sla.eigsh(op, k=kn, which="LM", v0=deflated(np.ones(m)),
-                                tol=ARPACK_TOL, ncv=min(m, max(kn + kn // 2, kn + 20)))
-        except (sla.ArpackError, RuntimeError) as exc:
-            failures.append(f"ARPACK (extension): {exc}")
-            return None
-        if _finite(mu, psi, failures, "ARPACK (extension)") is None:
-            return None
-        mu, psi = _complete(op, mu, psi)
-    lam = 1.0 / mu - shift
-    order = np.argsort(lam)
-    lam, psi = lam[order], psi[:, order]
+        found = _shift_invert_arpack(op, kn, deflated(np.ones(m)),
+                                     min(m, max(kn + kn // 2, kn + 20)), shift,
+                                     "ARPACK (extension)", failures)
+    if found is None:
+        return None
+    lam, psi = found
     top = float(lam0.max())
     if float(lam.min()) < top - 1e-8 * max(abs(top), 1e-12):
         failures.append("extension: a new eigenvalue below the known ones")
         return None
     return (np.concatenate([lam0, np.maximum(lam, 0.0)]),
             np.concatenate([phi0, psi * isq[:, None]], axis=1))
+
+
+def _shift_invert_arpack(op: sla.LinearOperator, k: int, v0: np.ndarray, ncv: int,
+                         shift: float, what: str, failures: list[str]
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``k`` largest eigenpairs of ``op = (S + shift I)^-1`` by ARPACK, completed
+    (:func:`_complete`), as eigenpairs of ``S`` in ascending order: ``(lam, psi)``; None (the
+    reason appended to ``failures`` under ``what``) if ARPACK fails or returns non-finite
+    values."""
+    try:
+        mu, psi = sla.eigsh(op, k=k, which="LM", v0=v0, tol=ARPACK_TOL, ncv=ncv)
+    except (sla.ArpackError, RuntimeError) as exc:  # ArpackNoConvergence included
+        failures.append(f"{what}: {exc}")
+        return None
+    if _finite(mu, psi, failures, what) is None:
+        return None
+    mu, psi = _complete(op, mu, psi)
+    lam = 1.0 / mu - shift
+    order = np.argsort(lam)
+    return lam[order], psi[:, order]
 
 
 def _complete(op: sla.LinearOperator, mu: np.ndarray, psi: np.ndarray,

@@ -498,9 +498,8 @@ class HeatKernel:
 
         Cost: free for ``k <= self.k``; otherwise one sparse eigensolve (shift-invert Lanczos,
         :func:`torchheat.eigen.eigenpairs`) of the pairs beyond the held ones, which it keeps
-        as they are and projects out (its ``known``; a lumped mass): about 1.0 s for
-        ``k = 200`` on 5k vertices (one thread) against 1.1 s for all 200 (BENCHMARKS.md).
-        Accuracy: as :attr:`eigenvectors`.
+        as they are and projects out (its ``known``; a lumped mass); timings in
+        BENCHMARKS.md ("Fine maps"). Accuracy: as :attr:`eigenvectors`.
 
         Parameters
         ----------
