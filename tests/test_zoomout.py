@@ -405,6 +405,44 @@ def test_argmin_certified_is_the_float64_nearest_neighbour_on_near_ties():
     assert float((d.gather(1, plain[:, None]).squeeze(1) - best).max()) > 1e-9
 
 
+@pytest.mark.parametrize("certified", [True, False])
+def test_dense_map_is_the_float64_brute_force_by_either_search(spot_pair, monkeypatch,
+                                                               certified):
+    """Both searches of dense_spectral_map (certified float32 product for small pairs,
+    cluster-pruned above CERTIFIED_MAX_PAIRS) give the float64 nearest neighbour, here of a
+    functional map far from the identity (a random rotation of the modes after the first)."""
+    import torchheat.matching.zoomout as zo
+
+    S, T, _ = spot_pair
+    k = 30
+    g = torch.Generator().manual_seed(1)
+    R = torch.linalg.qr(torch.randn(k - 1, k - 1, dtype=torch.float64, generator=g))[0]
+    C = torch.eye(k, dtype=torch.float64)
+    C[1:, 1:] = 0.7 * torch.eye(k - 1, dtype=torch.float64) + 0.3 * R
+    monkeypatch.setattr(zo, "CERTIFIED_MAX_PAIRS", S.n * T.n if certified else 0)
+    got = dense_spectral_map(S, T, C)
+    X = S.hk.eigenvectors[:, :k].double()
+    Y = T.hk.eigenvectors[:, :k].double() @ C.T
+    d = torch.cat([((x[:, None, :] - Y[None]) ** 2).sum(-1) for x in X.split(256)])
+    assert float((d.gather(1, got[:, None]).squeeze(1) - d.min(1).values).max()) <= 1e-13
+    # the two searches agree index for index (no exact ties here)
+    monkeypatch.setattr(zo, "CERTIFIED_MAX_PAIRS", 0 if certified else S.n * T.n)
+    assert torch.equal(dense_spectral_map(S, T, C), got)
+
+
+def test_argmin_certified_blocks_do_not_change_the_result(monkeypatch):
+    """The certified search's cache-sized blocks (nn.CACHE_BYTES) split the rows only."""
+    import torchheat.matching.nn as nn
+
+    g = torch.Generator().manual_seed(2)
+    X = torch.randn(500, 20, dtype=torch.float64, generator=g)
+    Y = torch.randn(300, 20, dtype=torch.float64, generator=g)
+    whole = nn._argmin_certified(X, Y)
+    monkeypatch.setattr(nn, "CACHE_BYTES", 7 * 300 * 4)  # blocks of 7 rows
+    assert torch.equal(nn._argmin_certified(X, Y), whole)
+    assert torch.equal(whole, torch.cdist(X, Y).argmin(1))
+
+
 def test_eigenpairs_beyond_the_held_basis_follow_the_sphere_spectrum():
     import trimesh
 

@@ -55,6 +55,12 @@ def __getattr__(name: str) -> CdistStats:
 # not depend on it (tested against unblocked computations).
 WORK_BYTES = 256 * 2**20
 
+# Largest block of the certified float32 search (:func:`_argmin_certified`): a [rows, m]
+# block reduced while it is still in the last-level cache. Measured on TOSCA 5k dense maps
+# (one thread, AMD EPYC with 32 MiB of L3): blocks of 4-16 MiB took 0.11-0.13 s, one
+# 100 MiB block 0.20 s.
+CACHE_BYTES = 8 * 2**20
+
 
 def _min_rows(G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``G.min(dim=1)``: the least value of every row and its first index.
@@ -293,19 +299,29 @@ def _argmin_certified(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = WORK
     bounded by ``(k + 4) u (2 |x| max|y| + max|y|^2)`` (``u = 2^-24``, a worst-case bound of a
     ``k``-term dot product, the conversions and the sums), so a row whose two smallest are
     farther apart than twice that bound has its float64 nearest neighbour; the other rows
-    (measured: none to a few of 5000 on TOSCA maps in 200 modes) are searched again in float64.
-    In 200 dimensions, 5k x 5k, one thread (``scripts/bench.py fine``, TOSCA cat0 -> cat10):
-    0.19 s against 0.29 s for the float64 brute force, 0.66 s for :func:`_nn_factors_pruned`
-    (whose pruning weakens with the dimension) and 1.75 s for scipy's ``cKDTree.query``.
+    (exact ties included; measured: 0-5 % of the rows on TOSCA dense maps) are searched again
+    in float64 (:func:`_blocked_argmin`, ties to the lowest index). The result is therefore
+    the float64 brute force's, whatever the blocks. The ``[rows, m]`` float32 blocks are
+    kept within ``min(memory_bytes, CACHE_BYTES)``, so each is reduced while it is still in
+    the cache. Timings against the cluster-pruned search, the float64 brute force and scipy's
+    ``cKDTree``: ``scripts/bench.py fine`` (BENCHMARKS.md).
 
     Parameters
     ----------
     X : torch.Tensor, float64, shape (n, k)
     Y : torch.Tensor, float64, shape (m, k)
+    memory_bytes : int
+        Working-set budget of one block.
 
     Returns
     -------
     torch.Tensor, int64, shape (n,)
+
+    Examples
+    --------
+    >>> X = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    >>> _argmin_certified(X, torch.tensor([[1.0, 0.9], [0.1, 0.0]], dtype=torch.float64))
+    tensor([1, 0])
     """
     n, k = X.shape
     m = Y.shape[0]
@@ -315,15 +331,16 @@ def _argmin_certified(X: torch.Tensor, Y: torch.Tensor, memory_bytes: int = WORK
     tol = (k + 4) * 2.0**-24 * (2.0 * xx.sqrt() * math.sqrt(ymax2) + ymax2)
     idx = torch.empty(n, dtype=torch.int64, device=X.device)
     unsure = torch.zeros(n, dtype=torch.bool, device=X.device)
-    rows = max(1, int(memory_bytes // max(1, 4 * m)))
+    rows = max(1, int(min(memory_bytes, CACHE_BYTES) // max(1, 4 * m)))
     for r0 in range(0, n, rows):
         G = torch.addmm(yy32[None, :], X32[r0 : r0 + rows], Y32.T, alpha=-2.0)
         if m == 1:
             idx[r0 : r0 + rows] = 0
             continue
-        v, i = torch.topk(G, 2, dim=1, largest=False)
-        idx[r0 : r0 + rows] = i[:, 0]
-        unsure[r0 : r0 + rows] = (v[:, 1] - v[:, 0]).double() <= 2.0 * tol[r0 : r0 + rows]
+        v0, i0 = _min_rows(G)  # the smallest, then the second: the smallest left
+        v1 = G.scatter_(1, i0[:, None], math.inf).amin(dim=1)
+        idx[r0 : r0 + rows] = i0
+        unsure[r0 : r0 + rows] = (v1 - v0).double() <= 2.0 * tol[r0 : r0 + rows]
     redo = unsure.nonzero().flatten()
     if redo.numel():
         idx[redo] = _blocked_argmin(X[redo], Y, xx[redo], yy, memory_bytes)[1]
