@@ -411,13 +411,16 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
     slack = 1e-7 * float((xx.max() + yy.max()).sqrt())  # rounding of the expanded form
     for r0 in range(0, n, block):
         q, xb = Q[r0 : r0 + block], xx[r0 : r0 + block]
-        dc = (torch.addmm(yy[centres][None, :], q, Pc.T, alpha=-2.0) + xb[:, None]).clamp_min(0)
-        dc = dc.sqrt()
+        # in place: each temporary of a [block, C] float64 block is a fresh allocation whose
+        # pages the kernel zeroes on first touch (half of this step's time on SCAPE)
+        dc = torch.addmm(yy[centres][None, :], q, Pc.T, alpha=-2.0)
+        dc.add_(xb[:, None]).clamp_min_(0).sqrt_()
         b0, c0 = _min_rows(dc)
         bd, bi = b0 * b0, centres[c0].clone()
-        need = (dc - radius[None, :]) <= (b0 + slack)[:, None]
-        for c in torch.nonzero(need.any(dim=0)).flatten().tolist():
-            xi = torch.nonzero(need[:, c]).flatten()
+        # need[c, x]: cluster c may hold a nearer target for x (rows per cluster, contiguous)
+        need = dc.sub_(radius[None, :]).T <= (b0 + slack)[None, :]
+        for c in torch.nonzero(need.any(dim=1)).flatten().tolist():
+            xi = torch.nonzero(need[c]).flatten()
             mem = order[starts[c] : ends[c]]
             ym, Pm = yy[mem][None, :], Pt[mem].T
             # [queries, members] distances (and one temporary) within the budget: a
