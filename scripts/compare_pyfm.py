@@ -126,11 +126,9 @@ def pairs_of(name: str):
 
     if name.endswith((".yaml", ".yml")):  # a batch config's dataset and pairs (its match
         # options are not used: both tools run their defaults)
-        from torchheat.batch.caches import _load_dataset
-        from torchheat.batch.config import load_config
+        from torchheat.batch import load_pairs
 
-        cfg = load_config(name)
-        return _load_dataset(cfg["dataset"], cfg["dataset_args"])
+        return load_pairs(name)
     if name == "scape6":
         return datasets.scape(pairs=SCAPE6)
     if name == "scape":
@@ -199,7 +197,11 @@ def main(argv: list[str]) -> None:
     it = iter(argv)
     for a in it:
         if a == "--shard":
-            shard, nshards = (int(v) for v in next(it).split("/"))
+            spec = next(it, "")
+            try:
+                shard, nshards = (int(v) for v in spec.split("/"))
+            except ValueError:
+                raise SystemExit(f"--shard {spec!r}: give I/N, e.g. --shard 0/2") from None
             if not 0 <= shard < nshards:
                 raise SystemExit(f"--shard {shard}/{nshards}: I must be in 0 .. N-1")
         elif a == "--records":

@@ -503,3 +503,27 @@ def test_every_shipped_config_loads(path):
     assert callable(getattr(datasets, cfg["dataset"]))
     if cfg["dataset"] in ("tosca_hires", "kids"):
         assert cfg["eval_points"] is not None and cfg["eval_points"] <= 5000
+
+
+def test_load_pairs_gives_the_pairs_a_run_records(tmp_path):
+    # the pairs of a config, in the run's order and with its limit, and each pair's ground
+    # truth as the run reads it (here: identity maps of deformed spheres)
+    meshes = tmp_path / "meshes"
+    deformed_spheres(meshes, n=3, subdivisions=2)
+    cfg = {"name": "lp", "dataset": "folder", "task": "match", "pictures": 0,
+           "dataset_args": {"path": str(meshes), "classes": ["blob"] * 3, "gt": "identity",
+                            "pairs": [["blob0", "blob1"], ["blob2", "blob0"],
+                                      ["blob1", "blob2"]]},
+           "match": {"method": "paper"}, "prepare": {"k": 30}}
+    pairs = batch.load_pairs(cfg)
+    assert pairs.names == ["blob0-blob1", "blob2-blob0", "blob1-blob2"]
+    p = pairs[1]
+    assert p.source.name == "blob2" and p.target.name == "blob0"
+    assert np.array_equal(np.asarray(p.gt_src), np.asarray(p.gt_tgt))
+    first = batch.load_pairs({**cfg, "limit": 2})
+    assert first.names == ["blob0-blob1", "blob2-blob0"] and len(first) == 2
+    assert len(batch.load_pairs(cfg)) == 3  # the run's cached collection keeps every pair
+    path = tmp_path / "lp.yaml"
+    path.write_text(yaml.safe_dump({**cfg, "limit": 1, "output": str(tmp_path / "out")}))
+    recs = batch.run(path, progress=False)
+    assert [r["name"] for r in recs] == batch.load_pairs(path).names == ["blob0-blob1"]

@@ -99,6 +99,7 @@ from .results import (
 )
 from .runner import (
     _AffinityPool,  # noqa: F401
+    load_pairs,
     preprocess,
     run,
 )
@@ -118,6 +119,7 @@ __all__ = [
     "PairTask",
     "evaluate_pair",
     "load_config",
+    "load_pairs",
     "load_results",
     "main",
     "preprocess",

@@ -8,6 +8,7 @@ from __future__ import annotations
 import builtins
 import concurrent.futures as cf
 import contextlib
+import copy
 import dataclasses
 import functools
 import os
@@ -196,6 +197,40 @@ def _preflight(ex: Any, cfg: Mapping[str, Any]) -> None:
     warning = ex.check_threads()
     if warning:
         warnings.warn(warning, stacklevel=3)
+
+
+def load_pairs(config: str | os.PathLike | Mapping[str, Any]) -> Any:
+    """The pairs a batch config evaluates, as a :class:`~torchheat.datasets.PairCollection`.
+
+    Its ``dataset`` and ``dataset_args`` (with ``cache``: shapes that carry their cached
+    eigenbasis), the first ``limit`` pairs when it sets one, in the order of the run's
+    records. For scripts that run something else over a config's pairs (e.g.
+    ``scripts/compare_pyfm.py --set CONFIG``).
+
+    Parameters
+    ----------
+    config : str, os.PathLike or mapping
+        A YAML config path or its contents (checked by :func:`load_config`).
+
+    Returns
+    -------
+    PairCollection
+        Indexable like the run's pairs: ``pairs[i]`` is a :class:`~torchheat.datasets.Pair`
+        and ``pairs.names[i]`` the name in the records.
+
+    Examples
+    --------
+    >>> pairs = load_pairs("configs/scape50.yaml")  # doctest: +SKIP
+    >>> len(pairs), pairs.names[0]  # doctest: +SKIP
+    (50, 'mesh000-mesh001')
+    """
+    cfg = load_config(config)
+    pc = _load_dataset(cfg["dataset"], cfg["dataset_args"], cfg.get("cache"), cfg["prepare"])
+    if cfg["limit"] is None or int(cfg["limit"]) >= len(pc):
+        return pc
+    first = copy.copy(pc)  # the loader's own class (its ground truth), fewer pairs
+    first.pairs = pc.pairs[: int(cfg["limit"])]
+    return first
 
 
 def _tasks(cfg: Mapping[str, Any]) -> list[PairTask]:
