@@ -120,6 +120,37 @@ def test_candidates_side_by_side_score_as_one_after_the_other(spot_pair, monkeyp
         assert torch.equal(a[1], b[1]) and a[2] == b[2]  # images, residual: the same bits
 
 
+def test_hypotheses_side_by_side_refine_as_one_after_the_other(spot_pair, monkeypatch):
+    # with two torch threads (no background self-symmetry to share them with) the
+    # hypotheses' rounds run side by side, one thread each: every hypothesis's energy and
+    # orientation, and the maps, are the bits of a one-thread match
+    from torchheat.heat import threads
+    from torchheat.matching import hypotheses
+
+    S, T, perm = spot_pair
+    pools: list[tuple[int, int]] = []
+    orig_run = hypotheses.run_each
+
+    def run_spy(jobs, n):
+        pools.append((len(jobs), n))
+        return orig_run(jobs, n)
+
+    monkeypatch.setattr(hypotheses, "run_each", run_spy)
+    out = {}
+    for n in (1, 2):
+        with threads(n):
+            Sn, Tn = prepare(Mesh(*S.mesh.numpy())), prepare(Mesh(*T.mesh.numpy()))
+            out[n] = match(Sn, Tn, background=False)
+    assert any(n == 2 and k >= 2 for k, n in pools)  # side by side on two threads
+    one, two = out[1], out[2]
+    assert torch.equal(one.map, two.map) and torch.equal(one.map, perm)
+    ha, hb = one.info["hypotheses"], two.info["hypotheses"]
+    assert len(ha) == len(hb) > 2
+    for a, b in zip(ha, hb, strict=True):
+        assert a[0] == b[0] and a[1] == b[1]  # landmarks, energy: the same bits
+        assert a[2] == b[2] or (math.isnan(a[2]) and math.isnan(b[2]))  # orientation
+
+
 def test_zoomout_recovers_a_permutation_from_a_noisy_seed(spot_pair):
     S, T, perm = spot_pair
     seeds = _fps(S, 48)

@@ -346,12 +346,13 @@ class HeatKernel:
         hi = self._phi_red.shape[1] if hi is None else hi
         key = (dt, dev, lo, hi)
         cache = self.__dict__.setdefault("_phi_cache", {})
-        if key not in cache:
+        phi = cache.get(key)
+        if phi is None:  # (returned from the local: another thread may clear the cache)
             if len(cache) >= 4:
                 cache.clear()
-            cache[key] = torch.as_tensor(self._phi_red[:, lo:hi], dtype=dt,
-                                         device=dev).contiguous()
-        return cache[key]
+            phi = cache[key] = torch.as_tensor(self._phi_red[:, lo:hi], dtype=dt,
+                                               device=dev).contiguous()
+        return phi
 
     def _spectral_eta(self) -> np.ndarray:
         """Operator-norm truncation bound of the eigenbasis per time, shape (J,)."""

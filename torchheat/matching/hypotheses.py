@@ -5,9 +5,13 @@ work, memoised for the stages of a staged search).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
+from .background import run_each
 from .landmarks import _sample_map
 from .options import _Options
 from .orientation import _orientation, _triangles
@@ -43,6 +47,16 @@ class _Hypotheses:
         self.refiner = _Refiner(src, tgt, self.samples, opt.refine_log_floor,
                                 centre=opt.partial_ratio is None)
 
+    def _side_by_side(self, jobs: list[Callable[[], object]]) -> None:
+        """Memoised ``jobs`` (the hypotheses' rounds) side by side on the caller's torch
+        threads, one each (:func:`~.background.run_each`); the loop that reads them after
+        finds them in the memo. Each job computes on one thread wherever it runs, so its bits
+        are those of a one-thread match. Nothing to do without a memo, on one thread (batch
+        workers; the command line while the target's self-symmetry runs in the background),
+        or on a GPU."""
+        if self.memo is not None and self.src.hk.device.type == "cpu":
+            run_each(jobs, torch.get_num_threads())
+
     def round1(self, lms0: list) -> tuple[float, torch.Tensor]:
         """Round 1 of the hypothesis of landmark pairs ``lms0``: its one-point (or few-point)
         map of the samples, refined once; ``(mean squared descriptor distance, images)``.
@@ -76,6 +90,7 @@ class _Hypotheses:
     def first_round(self, hyp: list) -> list[tuple[float, int, list, torch.Tensor]]:
         """Round 1 of every landmark hypothesis of ``hyp``: ``(energy, seeding order,
         landmarks, sample images)``, lowest energy first (ties in seeding order)."""
+        self._side_by_side([functools.partial(self.round1, lms0) for lms0 in hyp])
         stage: list[tuple[float, int, list, torch.Tensor]] = []
         for lms0 in hyp:
             e1, g0 = self.round1(lms0)
@@ -111,8 +126,11 @@ class _Hypotheses:
         for e1, _, lms0, g0 in stage[keep:]:
             hypotheses.append((lms0, e1, float("nan")))
             hyp_images.append(g0)
-        for lms0, g0 in [(s_[2], s_[3]) for s_ in stage[:keep]] + forced:
-            g, energy, o = self.refined(g0, max(opt.refine_iterations - 1, 1))
+        kept = [(s_[2], s_[3]) for s_ in stage[:keep]] + forced
+        iterations = max(opt.refine_iterations - 1, 1)
+        self._side_by_side([functools.partial(self.refined, g0, iterations) for _, g0 in kept])
+        for lms0, g0 in kept:
+            g, energy, o = self.refined(g0, iterations)
             results.append(Hypothesis(lms0=lms0, g=g, energy=energy, orientation=o))
             hypotheses.append((lms0 or ["descriptor map"], energy, o))
             hyp_images.append(g)
