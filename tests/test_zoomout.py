@@ -461,6 +461,25 @@ def test_dense_map_is_the_float64_brute_force_by_either_search(spot_pair, monkey
     assert torch.equal(dense_spectral_map(S, T, C), got)
 
 
+def test_fine_map_dense_search_is_the_same_by_either_search(spot_pair, monkeypatch):
+    """fine_map's dense search takes dense_spectral_map's switch: large meshes the pruned
+    search, small ones the certified product; the map is the same either way."""
+    import torchheat.matching.zoomout as zo
+
+    S, T, perm = spot_pair
+    a = S.hk.vertex_mass
+    C0 = S.hk.eigenvectors.T @ (a[:, None] * T.hk.eigenvectors[perm])
+    C0 = C0 + 0.05 * torch.randn(C0.shape, dtype=C0.dtype,
+                                 generator=torch.Generator().manual_seed(3))
+    got = {}
+    for limit in (0, S.n * T.n):
+        monkeypatch.setattr(zo, "CERTIFIED_MAX_PAIRS", limit)
+        got[limit] = zo.fine_map(S, T, C0, 120)
+    (i0, c0), (i1, c1) = got.values()
+    assert torch.equal(i0, i1) and torch.equal(c0, c1)
+    assert float((i0 == perm).double().mean()) > 0.99
+
+
 def test_argmin_certified_blocks_do_not_change_the_result(monkeypatch):
     """The certified search's cache-sized blocks (nn.CACHE_BYTES) split the rows only."""
     import torchheat.matching.nn as nn

@@ -270,7 +270,8 @@ def zoomout(phi_s: torch.Tensor, phi_t: torch.Tensor, seed_rows: torch.Tensor,
 #: Both find the float64 nearest neighbour (the same maps on 24 TOSCA and 3 SCAPE pairs).
 #: Measured at 100 modes, one thread: TOSCA 5k x 5k 0.12-0.18 s certified against 0.29 s
 #: pruned; SCAPE 12.5k x 12.5k 1.2-1.3 s against 0.57-0.59 s (BENCHMARKS.md, forty-second
-#: session); the ratio crosses 1 near 66 million pairs.
+#: session); the ratio crosses 1 near 66 million pairs (near 108 million at 200 modes, where
+#: ``fine_map`` searches: 0.25 / 1.52 s on TOSCA, 2.31 / 1.46 s on SCAPE).
 CERTIFIED_MAX_PAIRS = 50_000_000
 
 
@@ -309,16 +310,22 @@ def dense_spectral_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
     True
     """
     k = C.shape[0]
-    phi_s = src.hk.eigenvectors[:, :k].to(torch.float64)
-    phi_t = tgt.hk.eigenvectors[:, :k].to(torch.float64)
-    m = tgt.n
     with threads(num_threads):
-        if src.n * m <= CERTIFIED_MAX_PAIRS:
-            return _argmin_certified(phi_s, phi_t @ C.T.to(torch.float64))
-        eye = torch.eye(k, dtype=torch.float64)
-        centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
-        return _nn_factors_pruned(_Factors(phi_s, eye), None,
-                                  _Factors(phi_t, C.T.to(torch.float64)), centres)[1]
+        return _dense_argmin(src.hk.eigenvectors[:, :k], tgt.hk.eigenvectors[:, :k], C, tgt)
+
+
+def _dense_argmin(phi_s: torch.Tensor, phi_t: torch.Tensor, C: torch.Tensor,
+                  tgt: PreparedShape) -> torch.Tensor:
+    """``argmin_y |phi_s[x] - phi_t[y] C^T|`` for every row of ``phi_s`` (float64's nearest
+    neighbour): certified float32 up to ``CERTIFIED_MAX_PAIRS`` pairs, else cluster-pruned
+    around ``4 sqrt(m)`` farthest-point centres of ``tgt`` (whose vertices ``phi_t`` rows are)."""
+    k, m = C.shape[0], phi_t.shape[0]
+    phi_s, phi_t, Ct = phi_s.to(torch.float64), phi_t.to(torch.float64), C.T.to(torch.float64)
+    if phi_s.shape[0] * m <= CERTIFIED_MAX_PAIRS:
+        return _argmin_certified(phi_s, phi_t @ Ct)
+    centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
+    return _nn_factors_pruned(_Factors(phi_s, torch.eye(k, dtype=torch.float64)), None,
+                              _Factors(phi_t, Ct), centres)[1]
 
 
 #: ``fine_map``: source rows per mode of the largest basis (farthest-point samples). Measured on
@@ -359,7 +366,8 @@ def fine_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor, k: int,
     Cost beyond the two eigensolves (each solves only the modes beyond the heat kernel's, which
     it keeps: :func:`torchheat.eigen.eigenpairs`' ``known``): ``sum_k O(s m k)`` for
     ``s = FINE_ROWS_PER_MODE * k`` rows and the final exact ``n x m`` search in ``k``
-    dimensions (float32, certified: :func:`~.nn._argmin_certified`). Timings of both parts:
+    dimensions (as :func:`dense_spectral_map`'s: float32 certified up to
+    ``CERTIFIED_MAX_PAIRS`` pairs, cluster-pruned beyond). Timings of both parts:
     ``scripts/bench.py fine``, BENCHMARKS.md.
 
     Examples
@@ -386,5 +394,5 @@ def fine_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor, k: int,
                         step=FINE_STEP).C
         else:
             C = functional_map(phi_s, phi_t, rows, seed, k0)
-        images = _argmin_certified(phi_s[:, :C.shape[0]], phi_t[:, :C.shape[0]] @ C.T)
+        images = _dense_argmin(phi_s[:, :C.shape[0]], phi_t[:, :C.shape[0]], C, tgt)
     return images, C
