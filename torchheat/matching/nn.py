@@ -417,7 +417,7 @@ def _nn_factors_pruned(X: _Factors, rows: torch.Tensor | None, Y: _Factors,
         dc.add_(xb[:, None]).clamp_min_(0).sqrt_()
         b0, c0 = _min_rows(dc)
         bd, bi = b0 * b0, centres[c0].clone()
-        # need[c, x]: cluster c may hold a nearer target for x (rows per cluster, contiguous)
+        # need[c, x]: cluster c may hold a nearer target for x
         need = dc.sub_(radius[None, :]).T <= (b0 + slack)[None, :]
         for c in torch.nonzero(need.any(dim=1)).flatten().tolist():
             xi = torch.nonzero(need[c]).flatten()

@@ -305,7 +305,8 @@ def dense_spectral_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
     >>> import trimesh
     >>> from torchheat import Mesh
     >>> from torchheat.matching import prepare
-    >>> s = prepare(Mesh(*(lambda m: (m.vertices, m.faces))(trimesh.creation.icosphere(3))), k=20)
+    >>> ico = trimesh.creation.icosphere(3)
+    >>> s = prepare(Mesh(ico.vertices, ico.faces), k=20)
     >>> bool((dense_spectral_map(s, s, torch.eye(20)) == torch.arange(s.n)).all())
     True
     """
