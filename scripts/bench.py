@@ -420,7 +420,7 @@ def bench_fine(args) -> None:
         _Factors,
         _nn_factors_pruned,
     )
-    from torchheat.matching.prepared import _basis, _fps
+    from torchheat.matching.prepared import _basis, _cluster_centres
     from torchheat.matching.zoomout import CERTIFIED_MAX_PAIRS, fine_map
 
     if args.source and args.target:
@@ -467,7 +467,7 @@ def bench_fine(args) -> None:
     kd = torch.from_numpy(cKDTree(Y.numpy()).query(X.numpy(), workers=args.threads)[1])
     t_kd = time.perf_counter() - t0
     # the dense map's exact pruned search (large meshes), on the same map and bases
-    centres = _fps(t, max(16, int(4 * np.sqrt(t.n))))
+    centres = _cluster_centres(t)
     t0 = time.perf_counter()
     pr = _nn_factors_pruned(_Factors(X, torch.eye(X.shape[1], dtype=X.dtype)), None,
                             _Factors(_basis(t, C.shape[0]), C.T), centres)[1]

@@ -61,7 +61,7 @@ from .fmap import (
     wave_kernel_signature,
 )
 from .nn import _blocked_argmin, _Factors, _nn_factors, _nn_factors_pruned
-from .prepared import PreparedShape, ShapeCaches, _fps, _role_copy
+from .prepared import PreparedShape, ShapeCaches, _cluster_centres, _fps, _role_copy
 from .refine import _agree, _refine_factors
 from .zoomout import ZoomOutResult, _sizes, lstsq
 
@@ -726,8 +726,7 @@ def dense_partial_map(src: PreparedShape, tgt: PreparedShape, C: torch.Tensor,
     k_s, k_t = C.shape
     phi_s = src.hk.eigenvectors[:, :k_s].to(torch.float64)
     phi_t = tgt.hk.eigenvectors[:, :k_t].to(torch.float64)
-    m = tgt.n
-    centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
+    centres = _cluster_centres(tgt)
     with threads(num_threads):
         return _nn_factors_pruned(_Factors(phi_s, C.to(torch.float64)), rows,
                                   _Factors(phi_t, torch.eye(k_t, dtype=torch.float64)),

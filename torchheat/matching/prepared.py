@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -140,6 +141,14 @@ def _fps(shape: PreparedShape, k: int) -> torch.Tensor:
         V, _ = shape.mesh.numpy()
         cached = shape.caches.fps = farthest_point_sampling(V, max(k, 256))
     return cached[:k]
+
+
+def _cluster_centres(shape: PreparedShape) -> torch.Tensor:
+    """Centres of the cluster-pruned exact search (:func:`~.nn._nn_factors_pruned`) over the
+    shape's vertices: its first ``4 sqrt(m)`` farthest-point samples (at least 16, at most
+    all ``m`` vertices)."""
+    m = shape.n
+    return _fps(shape, min(m, max(16, int(4 * math.sqrt(m)))))
 
 
 def _basis(shape: PreparedShape, k: int) -> torch.Tensor:

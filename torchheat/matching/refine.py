@@ -5,7 +5,6 @@ whole map that the stages (hypotheses, ZoomOut choice, dense maps) pass on.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,7 +18,7 @@ from ..descriptors import (
 )
 from ..heat import threads
 from .nn import _Factors, _nn_factors, _nn_factors_pruned
-from .prepared import PreparedShape, _fps
+from .prepared import PreparedShape, _cluster_centres
 
 if TYPE_CHECKING:
     from .zoomout import ZoomOutResult
@@ -197,9 +196,7 @@ class _Refiner:
         with threads(self.src.hk.num_threads):
             if n_rows >= _PRUNE_ROWS and Fs.C is not None and Ft.C is not None:
                 # a dense map: exact search with cluster pruning (~1 % of the pairs)
-                m = self.tgt.n
-                centres = _fps(self.tgt, min(m, max(16, int(4 * math.sqrt(m)))))
-                return _nn_factors_pruned(Fs, rows, Ft, centres)
+                return _nn_factors_pruned(Fs, rows, Ft, _cluster_centres(self.tgt))
             return _nn_factors(Fs, rows, Ft)
 
     def augment(self, g: torch.Tensor, rows: torch.Tensor | None, iterations: int

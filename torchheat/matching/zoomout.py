@@ -20,14 +20,13 @@ nearest-neighbour search of ``s`` queries among ``m`` targets in ``k`` dimension
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
 from ..heat import threads
 from .nn import _argmin_certified, _blocked_argmin, _Factors, _nn_factors_pruned
-from .prepared import PreparedShape, _basis, _fps
+from .prepared import PreparedShape, _basis, _cluster_centres, _fps
 
 __all__ = ["functional_map", "spectral_map", "zoomout", "fine_map", "ZoomOutResult"]
 
@@ -324,9 +323,8 @@ def _dense_argmin(phi_s: torch.Tensor, phi_t: torch.Tensor, C: torch.Tensor,
     phi_s, phi_t, Ct = phi_s.to(torch.float64), phi_t.to(torch.float64), C.T.to(torch.float64)
     if phi_s.shape[0] * m <= CERTIFIED_MAX_PAIRS:
         return _argmin_certified(phi_s, phi_t @ Ct)
-    centres = _fps(tgt, min(m, max(16, int(4 * math.sqrt(m)))))
     return _nn_factors_pruned(_Factors(phi_s, torch.eye(k, dtype=torch.float64)), None,
-                              _Factors(phi_t, Ct), centres)[1]
+                              _Factors(phi_t, Ct), _cluster_centres(tgt))[1]
 
 
 #: ``fine_map``: source rows per mode of the largest basis (farthest-point samples). Measured on
